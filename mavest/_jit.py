@@ -1,0 +1,62 @@
+"""The one place that decides how numerical kernels are compiled.
+
+Every kernel in mavest is plain Python on NumPy arrays and scalars, compiled by
+numba. Setting ``NUMBA_DISABLE_JIT=1`` runs the very same code as Python, which
+is how coverage and debuggers see it.
+
+Compiled code is cached on disk so that only the first run on a machine pays
+the compile time. numba keys each function's cache on its own source file
+only, so a kernel would keep a stale copy of a callee edited in another file;
+the cache directory is therefore named after a hash of every source file that
+defines kernels (editing the command line does not force a recompile).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+import numba
+from numba import njit
+
+
+def _sources_digest() -> str:
+    package = Path(__file__).parent
+    digest = hashlib.sha256(numba.__version__.encode())
+    for path in sorted(package.rglob("*.py")):
+        source = path.read_bytes()
+        if path.name == "_jit.py" or b"_jit import kernel" in source:
+            digest.update(path.relative_to(package).as_posix().encode())
+            digest.update(source)
+    return digest.hexdigest()[:16]
+
+
+def _cache_directory() -> Path:
+    base = os.environ.get("MAVEST_CACHE_DIR") or os.environ.get("NUMBA_CACHE_DIR")
+    root = Path(base) if base else Path.home() / ".cache" / "mavest"
+    directory = root / f"numba-{_sources_digest()}"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / ".writable"
+        probe.touch()
+    except OSError:  # read-only home: a per-user temporary cache still saves the next run
+        directory = Path(tempfile.gettempdir()) / f"mavest-numba-{os.getuid()}-{directory.name}"
+        directory.mkdir(parents=True, exist_ok=True)
+    return directory
+
+
+CACHE_DIRECTORY = _cache_directory()
+numba.config.CACHE_DIR = str(CACHE_DIRECTORY)
+
+
+def cache_is_warm() -> bool:
+    """Whether compiled kernels are already cached (else the first call compiles)."""
+    return any(CACHE_DIRECTORY.rglob("*.nbi"))
+
+
+# nogil lets the pipeline run the filter in a worker thread without holding the
+# interpreter; error_model="numpy" makes x/0 give inf/nan as NumPy does, which
+# the kernels check for, instead of raising.
+kernel = njit(cache=True, nogil=True, error_model="numpy")

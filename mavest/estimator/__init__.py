@@ -1,0 +1,15 @@
+"""The attitude filter: configuration, charts, the recursion, and the public API."""
+
+from mavest.estimator.config import ConfigError, EstimatorConfig
+from mavest.estimator.estimator import Estimate, EstimateSeries, Estimator, estimate
+from mavest.estimator.layout import StepFlags
+
+__all__ = [
+    "ConfigError",
+    "Estimate",
+    "EstimateSeries",
+    "Estimator",
+    "EstimatorConfig",
+    "StepFlags",
+    "estimate",
+]

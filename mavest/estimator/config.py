@@ -1,0 +1,218 @@
+"""Estimator parameters: what a user may set, with defaults that work unconfigured.
+
+Following VQF's split, three things are kept apart:
+:class:`EstimatorConfig` (this module: user-facing parameters, immutable),
+the coefficients derived from it once (:mod:`mavest.estimator.layout`), and the
+filter state that changes every sample. Noise is given as densities, never per
+sample, so one configuration serves a 1 Hz and a 2 kHz IMU alike (DESIGN.md: a
+per-sample σ tuned at 200 Hz got worse at 1 kHz).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+UpdateKind = Literal["ekf", "iterated", "sigma_point"]
+ErrorSide = Literal["left", "right"]
+ResetPolicy = Literal["none", "first_order", "full"]
+Chart = Literal["exp", "heading_tilt"]
+
+UPDATE_KINDS: tuple[str, ...] = ("ekf", "iterated", "sigma_point")
+ERROR_SIDES: tuple[str, ...] = ("left", "right")
+RESET_POLICIES: tuple[str, ...] = ("none", "first_order", "full")
+CHARTS: tuple[str, ...] = ("exp", "heading_tilt")
+
+STANDARD_GRAVITY = 9.80665  # m/s², the value MAVLink's mG units are defined with
+
+
+class ConfigError(ValueError):
+    """A configuration value that cannot work, with the reason in the message."""
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Every parameter of the attitude filter.
+
+    Structure (see DESIGN.md and the Monte Carlo consistency tool for why the
+    defaults are what they are):
+
+    update
+        ``"ekf"`` one Gauss–Newton step; ``"iterated"`` Gauss–Newton with the
+        prior-correction term until ``iteration_tolerance``; ``"sigma_point"``
+        USQUE-style unscented prediction and update.
+    error
+        ``"left"``: R = Exp(δθ) R̄, δθ in the world frame (seed 000);
+        ``"right"``: R = R̄ Exp(δθ), δθ in the body frame.
+    chart
+        How the 3-D attitude error is mapped onto rotations. ``"exp"``: the
+        exponential map. ``"heading_tilt"`` (left error only):
+        R = Rz(ψ) Exp([τx, τy, 0]) R̄ — rotation about the world vertical split
+        from tilt, so that the reset never moves heading uncertainty into tilt
+        while gravity alone cannot see heading.
+    reset
+        How the covariance follows when the error mean is moved into the
+        reference (Mueller et al. 2017): ``"none"`` (the MEKF), ``"first_order"``,
+        ``"full"`` (the exact Jacobian of the chart, Gill et al. 2020).
+    """
+
+    update: UpdateKind = "iterated"
+    error: ErrorSide = "left"
+    chart: Chart = "heading_tilt"
+    reset: ResetPolicy = "full"
+    max_iterations: int = 6
+    # rad (and rad/s): the iteration ends when ‖Δx‖, or the next step Gauss–Newton's
+    # quadratic convergence predicts from it (10 ‖Δθ‖²), is below this
+    iteration_tolerance: float = 1e-6
+    # Unscented transform: sigma points at ±√(n + λ) σ with n + λ = ``sigma_spread``
+    # whatever the dimension n (3: Julier's choice, the points stay near the mean
+    # where the charts are good); β = 2 is exact for Gaussian fourth moments.
+    sigma_spread: float = 3.0
+    sigma_beta: float = 2.0
+
+    # Sensor noise, as densities.
+    gyro_noise_density: float = 0.005  # rad/s/√Hz (angle random walk and unmodelled gyro error)
+    gyro_bias_random_walk: float = 2e-5  # rad/s²/√Hz
+    accel_noise_density: float = 0.02  # m/s²/√Hz
+    gravity: float = STANDARD_GRAVITY
+
+    # Accelerometer robustness in dynamic motion.
+    accel_norm_inflation: float = 0.0  # σ grows by this × |‖a‖ − g| (0: off; see the README)
+    accel_norm_tolerance: float = 3.0  # m/s²: |‖a‖ − g| beyond this is not gravity
+    # NIS (χ², 2 dof) beyond which the sample's noise is inflated to match its
+    # innovation (0: off); disturbed this long, the attitude gets the blame.
+    accel_gate: float = 5.99
+    accel_max_disturbance_time: float = 10.0  # s
+    # Low-pass of the specific force in the estimated world frame (0: off). Linear
+    # acceleration integrates to a bounded velocity change, so it averages out
+    # while gravity stays (VQF's idea, Laidig & Seel 2023). The filter state is
+    # rotated with every correction, so it lags only the gyro's drift; its error
+    # is carried as a considered state (Schmidt), keeping the covariance honest.
+    accel_lowpass_time: float = 3.0  # s; natural frequency √2/τ
+    accel_lowpass_damping: float = 1.0 / math.sqrt(2.0)  # ζ ∈ (0, 1]; 1/√2: Butterworth
+    # A correction larger than this restarts the low-pass (0: never).
+    accel_lowpass_restart_angle: float = math.radians(2.0)  # rad
+    # The vehicle's velocity, whose derivative is the linear acceleration the
+    # low-pass averages away: Gauss–Markov, stationary σ (each world axis) and
+    # correlation time.
+    velocity_sigma: float = 1.5  # m/s
+    velocity_time: float = 1.0  # s
+
+    # Rest detection (VQF's criteria) and, at rest, a zero-rate update of the bias.
+    rest_detection: bool = True
+    rest_filter_time: float = 0.5  # s, low-pass of gyro and accel for the criteria
+    rest_gyro_threshold: float = math.radians(2.0)  # rad/s, ‖ω − ω̄‖ below this
+    rest_accel_threshold: float = 0.5  # m/s², ‖a − ā‖ below this
+    rest_min_time: float = 1.5  # s the criteria must hold
+    rest_rate_sigma: float = math.radians(0.01)  # rad/s of true rotation still allowed at rest
+
+    # Initial uncertainty (the first samples set tilt from the accelerometer).
+    initial_tilt_sigma: float = math.radians(5.0)  # rad
+    initial_heading_sigma: float = math.radians(5.0)  # rad, about the world vertical
+    initial_bias_sigma: float = math.radians(0.5)  # rad/s, each axis
+    initial_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad/s
+
+    # Time: a step longer than this is a gap; the attitude is re-aligned.
+    max_dt: float = 2.0  # s
+
+    def __post_init__(self) -> None:
+        _require(self.update in UPDATE_KINDS, f"update must be one of {UPDATE_KINDS}")
+        _require(self.error in ERROR_SIDES, f"error must be one of {ERROR_SIDES}")
+        _require(self.reset in RESET_POLICIES, f"reset must be one of {RESET_POLICIES}")
+        _require(self.chart in CHARTS, f"chart must be one of {CHARTS}")
+        _require(
+            not (self.chart == "heading_tilt" and self.error == "right"),
+            "chart 'heading_tilt' splits rotation about the world vertical and needs "
+            "error = 'left'",
+        )
+        _require(self.max_iterations >= 1, "max_iterations must be at least 1")
+        _require(0.0 < self.accel_lowpass_damping <= 1.0, "accel_lowpass_damping must be in (0, 1]")
+        for name in (
+            "gyro_noise_density",
+            "accel_noise_density",
+            "gravity",
+            "initial_tilt_sigma",
+            "initial_heading_sigma",
+            "initial_bias_sigma",
+            "max_dt",
+            "sigma_spread",
+            "velocity_sigma",
+            "velocity_time",
+        ):
+            value = getattr(self, name)
+            _require(math.isfinite(value) and value > 0.0, f"{name} must be > 0, got {value}")
+        for name in (
+            "gyro_bias_random_walk",
+            "iteration_tolerance",
+            "accel_norm_inflation",
+            "accel_norm_tolerance",
+            "accel_gate",
+            "accel_max_disturbance_time",
+            "accel_lowpass_time",
+            "accel_lowpass_restart_angle",
+            "rest_filter_time",
+            "rest_gyro_threshold",
+            "rest_accel_threshold",
+            "rest_min_time",
+            "rest_rate_sigma",
+        ):
+            value = getattr(self, name)
+            _require(math.isfinite(value) and value >= 0.0, f"{name} must be ≥ 0, got {value}")
+        _require(
+            len(self.initial_bias) == 3 and all(math.isfinite(v) for v in self.initial_bias),
+            "initial_bias must be three finite numbers (rad/s)",
+        )
+
+    def replace(self, **changes: Any) -> EstimatorConfig:
+        """A copy with some parameters changed (the config itself is immutable)."""
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def variant(self) -> str:
+        """A short name of the filter structure, e.g. ``iterated/left/heading_tilt/full``."""
+        return f"{self.update}/{self.error}/{self.chart}/{self.reset}"
+
+    @classmethod
+    def from_mapping(cls, values: dict[str, Any]) -> EstimatorConfig:
+        """Build from a mapping (e.g. a TOML table), rejecting unknown keys by name."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(
+                f"unknown estimator parameter(s): {', '.join(unknown)}; "
+                f"known: {', '.join(sorted(known))}"
+            )
+        converted = dict(values)
+        if "initial_bias" in converted:
+            converted["initial_bias"] = tuple(float(v) for v in converted["initial_bias"])
+        try:
+            return cls(**converted)
+        except TypeError as error:  # wrong type of a value
+            raise ConfigError(str(error)) from None
+
+    @classmethod
+    def from_toml(cls, path: str | Path, table: str = "estimator") -> EstimatorConfig:
+        """Read the ``[estimator]`` table of a TOML file (other tables are ignored)."""
+        path = Path(path)
+        try:
+            with path.open("rb") as stream:
+                document = tomllib.load(stream)
+        except OSError as error:
+            raise ConfigError(f"cannot read {path}: {error.strerror}") from None
+        except tomllib.TOMLDecodeError as error:
+            raise ConfigError(f"{path} is not valid TOML: {error}") from None
+        return cls.from_mapping(document.get(table, {}))
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)

@@ -1,0 +1,240 @@
+"""The numeric layout shared by Python and the compiled kernels.
+
+The filter's state and its coefficients are NumPy structured records: one
+argument each for a compiled kernel, with named fields instead of offsets, and
+no allocation on the hot path (scratch matrices live in the state record).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mavest.estimator.config import (
+    CHARTS,
+    ERROR_SIDES,
+    RESET_POLICIES,
+    UPDATE_KINDS,
+    EstimatorConfig,
+)
+
+# Type names for one element of the record arrays below, as the kernels receive them.
+StateRecord = np.void
+CoefficientsRecord = np.void
+
+N_ERROR = 6  # the estimated error: δθ (3) and δb (3)
+# considered only: the low-passed accelerometer's error ε, the low-pass's rate
+# ḟ, and the vehicle's velocity v, each in world x, y, z
+N_CONSIDER = 9
+N_STATE_MAX = N_ERROR + N_CONSIDER
+N_SIGMA_MAX = 2 * N_STATE_MAX + 1
+
+# Integer codes of the structural choices: their position in the config's tuples.
+UPDATE_EKF, UPDATE_ITERATED, UPDATE_SIGMA_POINT = range(len(UPDATE_KINDS))
+ERROR_LEFT, ERROR_RIGHT = range(len(ERROR_SIDES))
+CHART_EXP, CHART_HEADING_TILT = range(len(CHARTS))
+RESET_NONE, RESET_FIRST_ORDER, RESET_FULL = range(len(RESET_POLICIES))
+
+
+class StepFlags:
+    """Bits of the per-sample ``flags`` field: what happened to this sample."""
+
+    INITIALISED = 1  # this sample set the initial attitude from the accelerometer
+    NOT_INITIALISED = 2  # no usable sample yet: the output is a placeholder
+    ACCEL_INVALID = 4  # accelerometer not finite or zero: not used
+    ACCEL_REJECTED_NORM = 8  # |‖a‖ − g| beyond tolerance: not gravity
+    ACCEL_DISTURBED = 16  # innovation beyond the χ² gate: used with its noise inflated to match
+    GYRO_INVALID = 32  # gyroscope not finite: sample skipped
+    TIME_NOT_INCREASING = 64  # t ≤ previous t (duplicate or time going back): skipped
+    GAP_REALIGNED = 128  # Δt > max_dt: attitude re-aligned from the accelerometer
+    TILT_REOPENED = 256  # disturbed too long: tilt given its initial uncertainty again
+    LOWPASS_RESTARTED = 512  # a large correction: the accelerometer low-pass starts again
+    ACCEL_DEFERRED = 1024  # the low-pass has not averaged enough yet to be used
+
+    SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING
+
+    @classmethod
+    def describe(cls, flags: int) -> list[str]:
+        """Names of the bits set in ``flags``."""
+        return [
+            name
+            for name, bit in vars(cls).items()
+            if name.isupper() and name != "SKIPPED" and flags & bit
+        ]
+
+
+COEFFICIENTS_DTYPE = np.dtype(
+    [
+        ("update", np.int64),
+        ("error", np.int64),
+        ("chart", np.int64),
+        ("reset", np.int64),
+        ("n_state", np.int64),  # covariance dimension: 6, or 8 with the low-pass's ε
+        ("max_iterations", np.int64),
+        ("iteration_tolerance", np.float64),
+        ("sigma_spread", np.float64),  # n + λ
+        ("sigma_w0_mean", np.float64),
+        ("sigma_w0_cov", np.float64),
+        ("sigma_wi", np.float64),
+        ("gyro_var_density", np.float64),  # σ_g², rad²/s
+        ("bias_var_density", np.float64),  # σ_b², rad²/s³
+        ("accel_var_density", np.float64),  # σ_a², m²/s³
+        ("gravity", np.float64),
+        ("accel_norm_inflation", np.float64),
+        ("accel_norm_tolerance", np.float64),
+        ("accel_gate", np.float64),
+        ("accel_max_disturbance_time", np.float64),
+        ("initial_tilt_var", np.float64),
+        ("initial_heading_var", np.float64),
+        ("initial_bias_var", np.float64),
+        ("initial_bias", np.float64, 3),
+        ("max_dt", np.float64),
+        ("accel_lowpass_time", np.float64),
+        ("accel_lowpass_damping", np.float64),
+        ("lowpass_restart_angle", np.float64),
+        ("velocity_var", np.float64),
+        ("velocity_time", np.float64),
+        ("rest_detection", np.int64),
+        ("rest_filter_time", np.float64),
+        ("rest_gyro_threshold", np.float64),
+        ("rest_accel_threshold", np.float64),
+        ("rest_min_time", np.float64),
+        ("rest_rate_var", np.float64),
+    ]
+)
+
+STATE_DTYPE = np.dtype(
+    [
+        # the estimate
+        ("q", np.float64, 4),  # nominal attitude, body → NED, (w, x, y, z)
+        ("b", np.float64, 3),  # nominal gyro bias, rad/s
+        # error covariance of [δθ (chart), δb, ε]; the first 6×6 is the estimate's
+        ("P", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("t", np.float64),  # time of the last sample taken, s
+        ("t_accel", np.float64),  # time of the last undisturbed accelerometer update
+        ("initialised", np.int64),
+        ("samples", np.int64),
+        ("accel_rejections", np.int64),  # samples not used (norm beyond tolerance)
+        ("accel_disturbances", np.int64),  # samples used with inflated noise
+        # filters feeding the measurements
+        # low-passed specific force f̄ and its rate ḟ, estimated world frame
+        ("accel_world_lp", np.float64, (2, 3)),
+        ("lowpass_time", np.float64),  # time averaged since the low-pass started, s
+        ("rest_gyro_lp", np.float64, 3),  # low-passed gyro and accel of the rest detector
+        ("rest_accel_lp", np.float64, 3),
+        ("rest_time", np.float64),  # how long the rest criteria have held, s
+        ("filters_primed", np.int64),  # the three low-passes hold a sample
+        # what the last step did
+        ("innovation", np.float64, 2),  # gravity residual before the update, rad
+        ("nis", np.float64),  # normalised innovation squared (χ², 2 dof)
+        ("accel_used", np.int64),
+        ("flags", np.int64),  # StepFlags bits
+        ("iterations", np.int64),
+        ("at_rest", np.int64),  # rest detected: the bias got a zero-rate update
+        # scratch, so that the hot path allocates nothing
+        ("w_R", np.float64, (3, 3)),
+        ("w_R_tilt", np.float64, (3, 3)),
+        ("w_m33", np.float64, (3, 3)),
+        ("w_n33", np.float64, (3, 3)),
+        ("w_v3", np.float64, 3),
+        ("w_u3", np.float64, 3),
+        ("w_sample", np.float64, 6),  # the online step's gyro and accel
+        ("w_z", np.float64, 3),
+        ("w_h", np.float64, 3),
+        ("w_Bz", np.float64, (3, 2)),
+        ("w_q4", np.float64, 4),
+        ("w_p4", np.float64, 4),
+        ("w_T", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("w_A", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("w_B", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("w_H", np.float64, (2, N_STATE_MAX)),
+        ("w_K", np.float64, (N_STATE_MAX, 2)),
+        ("w_K3", np.float64, (N_STATE_MAX, 3)),
+        ("w_C", np.float64, (N_STATE_MAX, 2)),
+        ("w_C3", np.float64, (N_STATE_MAX, 3)),
+        ("w_G", np.float64, (2, 3)),
+        ("w_rows", np.float64, (3, N_STATE_MAX)),
+        ("w_S3", np.float64, (3, 3)),
+        ("w_W", np.float64, (3, 3)),
+        ("w_S", np.float64, (2, 2)),
+        ("w_r", np.float64, 2),
+        ("w_dx", np.float64, N_STATE_MAX),
+        ("w_d", np.float64, N_STATE_MAX),
+        ("w_m", np.float64, N_STATE_MAX),
+        ("w_prior_q", np.float64, 4),
+        ("w_q_before", np.float64, 4),
+        ("w_prior_b", np.float64, 3),
+        ("w_sigma_chi", np.float64, (N_SIGMA_MAX, N_STATE_MAX)),
+        ("w_sigma_q", np.float64, (N_SIGMA_MAX, 4)),
+        ("w_sigma_r", np.float64, (N_SIGMA_MAX, 2)),
+    ]
+)
+
+
+def make_coefficients(config: EstimatorConfig) -> np.ndarray:
+    """The (1,) coefficient record the kernels read, derived once from a config."""
+    c = np.zeros(1, dtype=COEFFICIENTS_DTYPE)
+    c["update"] = UPDATE_KINDS.index(config.update)
+    c["error"] = ERROR_SIDES.index(config.error)
+    c["chart"] = CHARTS.index(config.chart)
+    c["reset"] = RESET_POLICIES.index(config.reset)
+    c["max_iterations"] = 1 if config.update == "ekf" else config.max_iterations
+    c["iteration_tolerance"] = config.iteration_tolerance
+    n = N_STATE_MAX if config.accel_lowpass_time > 0.0 else N_ERROR
+    c["n_state"] = n
+    # scaled unscented transform with α² = spread/n, κ = 0
+    spread = config.sigma_spread
+    lam = spread - n
+    c["sigma_spread"] = spread
+    c["sigma_w0_mean"] = lam / spread
+    c["sigma_w0_cov"] = lam / spread + (1.0 - spread / n + config.sigma_beta)
+    c["sigma_wi"] = 0.5 / spread
+    c["gyro_var_density"] = config.gyro_noise_density**2
+    c["bias_var_density"] = config.gyro_bias_random_walk**2
+    c["accel_var_density"] = config.accel_noise_density**2
+    c["gravity"] = config.gravity
+    c["accel_norm_inflation"] = config.accel_norm_inflation
+    c["accel_norm_tolerance"] = config.accel_norm_tolerance
+    c["accel_gate"] = config.accel_gate
+    c["accel_max_disturbance_time"] = config.accel_max_disturbance_time
+    c["initial_tilt_var"] = config.initial_tilt_sigma**2
+    c["initial_heading_var"] = config.initial_heading_sigma**2
+    c["initial_bias_var"] = config.initial_bias_sigma**2
+    c["initial_bias"] = config.initial_bias
+    c["max_dt"] = config.max_dt
+    c["accel_lowpass_time"] = config.accel_lowpass_time
+    c["accel_lowpass_damping"] = config.accel_lowpass_damping
+    c["lowpass_restart_angle"] = config.accel_lowpass_restart_angle
+    c["velocity_var"] = config.velocity_sigma**2
+    c["velocity_time"] = config.velocity_time
+    c["rest_detection"] = int(config.rest_detection)
+    c["rest_filter_time"] = config.rest_filter_time
+    c["rest_gyro_threshold"] = config.rest_gyro_threshold
+    c["rest_accel_threshold"] = config.rest_accel_threshold
+    c["rest_min_time"] = config.rest_min_time
+    c["rest_rate_var"] = config.rest_rate_sigma**2
+    return c
+
+
+def new_state(coefficients: np.ndarray) -> np.ndarray:
+    """A (1,) state record before the first sample.
+
+    Identity attitude, the configured initial bias, and the initial covariance
+    (heading on the vertical, in the world frame): a valid, positive-definite
+    estimate even before the first usable sample arrives.
+    """
+    c = coefficients[0]
+    s = np.zeros(1, dtype=STATE_DTYPE)
+    s["q"][0, 0] = 1.0
+    s["b"][0] = c["initial_bias"]
+    s["P"][0, :N_ERROR, :N_ERROR] = np.diag(
+        [c["initial_tilt_var"], c["initial_tilt_var"], c["initial_heading_var"]]
+        + [c["initial_bias_var"]] * 3
+    )
+    if c["n_state"] > N_ERROR:  # the vehicle's velocity, the last considered block
+        velocity = slice(N_STATE_MAX - 3, N_STATE_MAX)
+        s["P"][0, velocity, velocity] = c["velocity_var"] * np.eye(3)
+    s["t"] = -np.inf
+    s["t_accel"] = -np.inf
+    s["nis"] = np.nan
+    s["innovation"] = np.nan
+    return s

@@ -1,0 +1,1166 @@
+"""The filter recursion: predict → reset → update → reset (Mueller, Hehn, D'Andrea 2017).
+
+State X = [R, b] ∈ SO(3) × R³ held as a nominal (q, b) and a Gaussian error
+δx = [δθ, δb] in the chosen chart (:mod:`mavest.estimator.charts`). After
+every step the error mean is moved into the nominal (the reset), so it is zero
+between samples and only the covariance travels with the nominal.
+
+Prediction (DESIGN.md), ω̂ = ω_m − b̄, φ = ω̂ Δt with each sample's own Δt:
+
+    R̄ ← R̄ Exp(φ)                                       (exact for constant rate)
+    Φ = [[I, −R̄ J_l(φ) Δt], [0, I]]                     (left error)
+    Φ = [[Exp(−φ), −J_r(φ) Δt], [0, I]]                 (right error)
+    Q = [[(σ_g²Δt + σ_b²Δt³/3) I, −σ_b²Δt²/2 M], [·, σ_b²Δt I]]
+
+with M = R̄ (left) or Exp(−φ) (right, its adjoint image).
+
+Update (seed 002): the MAP cost ‖r(x)‖²_V + ‖x ⊟ x̄‖²_P minimised by
+Gauss–Newton with the prior-correction term (Bell & Cathey 1993; on the
+manifold as IKFoM). With d_i = x_i ⊟ x̄ and T_i the reset Jacobian at d_i, the
+prior seen from the iterate is N(−T_i d_i, T_i P T_iᵀ), and
+
+    δ_i = m_i − K_i (r_i + H_i m_i),   m_i = −T_i d_i,   x_{i+1} = x_i ⊞ δ_i
+
+with K_i the Kalman gain for T_i P T_iᵀ. One iteration is the EKF; the fixed
+point (reset ``full``) is the minimiser of the MAP cost. The covariance of the
+last iterate is the Joseph form, moved onto x_{i+1} by the reset T(δ_i).
+
+The low-passed accelerometer (``accel_lowpass_time`` τ > 0). The filter then
+measures gravity with f̄, a second-order low-pass (state f̄ and its rate ḟ,
+natural frequency √2/τ, damping ζ; Butterworth at ζ = 1/√2 like VQF's) of the
+specific force in the estimated world frame: linear acceleration integrates to
+a bounded velocity change and averages out, gravity stays (VQF's idea). The
+low-pass's errors ε = f̄ − Exp(−δθ)(−g e₃) and ḟ are correlated from sample to
+sample, so they are carried as covariance dimensions (world components) with
+exact dynamics:
+
+    prediction:          ε ← ε + g E W Δθ            (the attitude error moves, f̄ does not)
+    absorbing a sample:  [ε; ḟ] ← Φ [ε; ḟ] + Γ (η + a)  (the low-pass's own step, exact for Δt)
+    measurement:         r ≈ H δθ + H_ε ε,  H_ε = (1/g) B_zᵀ R̄ᵀ [e₃]×
+    moving the reference by E (a reset):  ε ← E ε,  ḟ ← E ḟ
+
+(η the sample's noise; E = the x, y rows of [e₃]×; W = I for the left error,
+R̄ for the right, as Δθ must be taken in the world frame.) The vertical ε
+is invisible to the measurement and to the lag, until a large correction
+turns part of it into the horizontal: it is carried for that.
+
+Linear acceleration a is what the low-pass is for, and what makes its error
+coloured: it is the derivative of a bounded velocity. The vehicle's velocity
+v is modelled as Gauss–Markov (σ_v, T_v) and carried too, a held over each
+sample: v ← γ v + ξ, a = ((γ − 1) v + ξ)/Δt, γ = e^(−Δt/T_v). The low-pass
+averages such an a away (its integral stays bounded), which this model lets
+the filter know, and its covariance then honestly holds what is left.
+ε, ḟ and v are
+*considered* states (Schmidt): their covariance and correlations shape the
+gain and are updated with their gain rows set to zero, but their means are
+never estimated. Estimating them would turn the filter back into the
+raw-accelerometer filter; considering them keeps the low-pass — what makes
+the estimate robust to linear acceleration — and keeps the covariance the true
+covariance of that estimator.
+
+Every array the recursion touches lives in the state record ``s``; nothing is
+allocated per sample.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mavest import so3, sphere
+from mavest._jit import kernel
+from mavest.estimator import gravity
+from mavest.estimator.charts import local_into, reset_jacobian_into, retract_into
+from mavest.estimator.layout import (
+    ERROR_LEFT,
+    N_ERROR,
+    UPDATE_SIGMA_POINT,
+    CoefficientsRecord,
+    StateRecord,
+    StepFlags,
+)
+from mavest.estimator.linalg import (
+    cholesky_into,
+    gain_update,
+    inverse_3x3_into,
+    left_multiply_rows3,
+    right_multiply_cols3,
+    symmetrise,
+)
+
+# Accelerometer readings below this fraction of g carry no usable direction.
+_MIN_ACCEL_FRACTION = 0.05
+# The considered dimensions follow δθ and δb: ε (x, y, z), the error of the
+# low-pass output the update measures, the low-pass's rate ḟ (x, y, z), and
+# the vehicle's velocity v (x, y, z), world frame.
+_EPS = N_ERROR
+_RATE = N_ERROR + 3
+_VEL = N_ERROR + 6
+# A floor under the measurement variance, so that S stays invertible (the
+# low-passed measurement's noise lives in ε).
+_MIN_DIRECTION_VAR = 1e-14
+
+_INITIALISED = StepFlags.INITIALISED
+_NOT_INITIALISED = StepFlags.NOT_INITIALISED
+_ACCEL_INVALID = StepFlags.ACCEL_INVALID
+_ACCEL_REJECTED_NORM = StepFlags.ACCEL_REJECTED_NORM
+_ACCEL_DISTURBED = StepFlags.ACCEL_DISTURBED
+_GYRO_INVALID = StepFlags.GYRO_INVALID
+_TIME_NOT_INCREASING = StepFlags.TIME_NOT_INCREASING
+_GAP_REALIGNED = StepFlags.GAP_REALIGNED
+_TILT_REOPENED = StepFlags.TILT_REOPENED
+_LOWPASS_RESTARTED = StepFlags.LOWPASS_RESTARTED
+_ACCEL_DEFERRED = StepFlags.ACCEL_DEFERRED
+
+
+# --------------------------------------------------------------------------
+# Small helpers on the state record
+# --------------------------------------------------------------------------
+
+
+@kernel
+def _vector_is_finite(v: np.ndarray) -> bool:
+    return math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(v[2])
+
+
+@kernel
+def _set_identity(M: np.ndarray) -> None:
+    for i in range(M.shape[0]):
+        for j in range(M.shape[1]):
+            M[i, j] = 1.0 if i == j else 0.0
+
+
+@kernel
+def _transform_blocks(
+    s: StateRecord,
+    c: CoefficientsRecord,
+    P: np.ndarray,
+    A: np.ndarray,
+    W: np.ndarray,
+    with_considered: bool,
+) -> None:
+    """P ← T P Tᵀ for T = blockdiag(A, I, W, W, W): A on δθ, W (3×3) on ε, ḟ and v.
+
+    T is block-diagonal, so each 3-row block is multiplied on its own:
+    O(n) per block instead of the O(n³) of a dense product. With
+    ``with_considered`` false, the considered blocks are left alone (W = I).
+    """
+    left_multiply_rows3(P, 0, A, s.w_rows)
+    right_multiply_cols3(P, 0, A, s.w_rows)
+    if with_considered and c.n_state > N_ERROR:
+        for block in (_EPS, _RATE, _VEL):
+            left_multiply_rows3(P, block, W, s.w_rows)
+            right_multiply_cols3(P, block, W, s.w_rows)
+
+
+@kernel
+def _world_move_into(
+    q_new: np.ndarray, q_old: np.ndarray, W: np.ndarray, work4: np.ndarray
+) -> None:
+    """W = R(q_new ⊗ q_old⁻¹), the move of the estimated world frame.
+
+    The low-pass's vectors are rotated by that move (they are world vectors of
+    the estimated frame), and so, exactly, are their errors: ε' = W ε.
+    """
+    so3.quat_divide_right_into(q_new, q_old, work4)
+    so3.matrix_from_quat_into(work4, W)
+
+
+@kernel
+def _reset_covariance(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
+    """P ← T P Tᵀ, T = blockdiag(T_θ(δ̂θ), I, W, W): the reset of the covariance.
+
+    Called right after :func:`_move_nominal` moved the reference from w_p4 to
+    q: the low-pass's errors turn with the world-frame move (W), as its
+    vectors did.
+    """
+    reset_jacobian_into(dx[:3], c.error, c.chart, c.reset, s.w_m33)
+    _world_move_into(s.q, s.w_p4, s.w_W, s.w_q4)
+    n = c.n_state
+    _transform_blocks(s, c, s.P[:n, :n], s.w_m33, s.w_W, True)
+
+
+@kernel
+def _move_nominal(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
+    """x ← x ⊞ δx (attitude through the chart, bias additively).
+
+    The estimated world frame moves with the attitude (by q⁺ ⊗ q⁻¹), so the
+    world-frame low-pass of the specific force is rotated along.
+    """
+    s.w_p4[:] = s.q
+    retract_into(s.w_p4, dx[:3], c.error, c.chart, s.q, s.w_q4)
+    for i in range(3):
+        s.b[i] += dx[3 + i]
+    if c.accel_lowpass_time > 0.0:
+        so3.quat_divide_right_into(s.q, s.w_p4, s.w_q4)
+        for stage in range(2):
+            so3.quat_rotate_into(s.w_q4, s.accel_world_lp[stage], s.accel_world_lp[stage])
+
+
+@kernel
+def _apply_correction(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
+    """The reset step: move the error mean δ̂ into the nominal and transform P."""
+    _move_nominal(s, c, dx)
+    _reset_covariance(s, c, dx)
+
+
+@kernel
+def _error_frame_from_world(s: StateRecord, c: CoefficientsRecord) -> None:
+    """w_m33 = the matrix taking a world-frame rotation vector to the error's frame."""
+    if c.error == ERROR_LEFT:
+        _set_identity(s.w_m33)
+    else:
+        so3.matrix_from_quat_into(s.q, s.w_R)
+        for i in range(3):
+            for j in range(3):
+                s.w_m33[i, j] = s.w_R[j, i]  # Rᵀ: world → body
+
+
+@kernel
+def _set_attitude_covariance_world(
+    s: StateRecord,
+    c: CoefficientsRecord,
+    tilt_var: float,
+    heading_var: float,
+    keep_heading: bool,
+) -> None:
+    """Set the tilt (and heading) variances of P as seen in the world frame.
+
+    Tilt is rotation about the two horizontal world axes, heading about the
+    vertical. Their cross-covariances with everything else are cleared; a kept
+    heading keeps its variance and its covariances.
+    """
+    n = c.n_state
+    _error_frame_from_world(s, c)  # M (world → error frame) in w_m33
+    for i in range(3):
+        for j in range(3):
+            s.w_n33[i, j] = s.w_m33[j, i]  # Mᵀ: error frame → world
+    # a change of coordinates of δθ only, not a move of the reference
+    _transform_blocks(s, c, s.P[:n, :n], s.w_n33, s.w_W, False)
+    last = 2 if keep_heading else 3
+    for i in range(last):
+        for j in range(n):
+            s.P[i, j] = 0.0
+            s.P[j, i] = 0.0
+    s.P[0, 0] = tilt_var
+    s.P[1, 1] = tilt_var
+    if not keep_heading:
+        s.P[2, 2] = heading_var
+    _transform_blocks(s, c, s.P[:n, :n], s.w_m33, s.w_W, False)
+
+
+@kernel
+def _align(
+    s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, keep_heading: bool, keep_bias: bool
+) -> None:
+    """Attitude from the accelerometer's gravity direction; heading kept or set to 0.
+
+    At rest a = −g Rᵀe₃ with Rᵀe₃ = (−sin θ, sin φ cos θ, cos φ cos θ) for ZYX
+    angles, hence roll φ = atan2(−a_y, −a_z), pitch θ = atan2(a_x, √(a_y² + a_z²)).
+    """
+    roll = math.atan2(-accel[1], -accel[2])
+    pitch = math.atan2(accel[0], math.hypot(accel[1], accel[2]))
+    yaw = 0.0
+    if keep_heading:
+        so3.euler_zyx_from_quat_into(s.q, s.w_v3)
+        yaw = s.w_v3[2]
+    so3.quat_from_euler_zyx_into(roll, pitch, yaw, s.q)
+    so3.quat_normalize_into(s.q)
+    n = c.n_state
+    if not keep_bias:
+        for i in range(n):
+            for j in range(n):
+                s.P[i, j] = 0.0
+        for i in range(3):
+            s.b[i] = c.initial_bias[i]
+            s.P[3 + i, 3 + i] = c.initial_bias_var
+    _set_attitude_covariance_world(s, c, c.initial_tilt_var, c.initial_heading_var, False)
+    _reset_velocity_covariance(s, c)
+    s.filters_primed = 0  # the low-passes start again with the next sample
+
+
+@kernel
+def _prime_filters(
+    s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, accel: np.ndarray, dt: float
+) -> None:
+    """Start the measurement low-passes again with this sample.
+
+    Priming is the low-pass's step with no weight on its history (β = 0): f̄
+    becomes this sample (ḟ = 0) and ε its error η + a, where a involves the
+    velocity, which carries on with its correlations — it is the vehicle's,
+    not the filter's.
+    """
+    s.rest_gyro_lp[:] = gyro
+    s.rest_accel_lp[:] = accel
+    s.rest_time = 0.0
+    s.filters_primed = 1
+    n = c.n_state
+    if n == N_ERROR:
+        return
+    for i in range(_EPS, _VEL):  # ε and ḟ start afresh
+        for j in range(n):
+            s.P[i, j] = 0.0
+            s.P[j, i] = 0.0
+    s.accel_world_lp[1, :] = 0.0
+    s.lowpass_time = 0.0
+    _absorb_sample(s, c, accel, dt)  # mean mode with nothing averaged yet: β = 0
+    for a in range(3):  # ḟ is known to be zero; a hair keeps P definite
+        s.P[_RATE + a, _RATE + a] = 1e-12 * s.P[_EPS + a, _EPS + a]
+
+
+@kernel
+def _reset_velocity_covariance(s: StateRecord, c: CoefficientsRecord) -> None:
+    """Nothing known of the vehicle's velocity: its stationary variance, uncorrelated."""
+    n = c.n_state
+    if n == N_ERROR:
+        return
+    for i in range(_VEL, n):
+        for j in range(n):
+            s.P[i, j] = 0.0
+            s.P[j, i] = 0.0
+        s.P[i, i] = c.velocity_var
+
+
+# --------------------------------------------------------------------------
+# Prediction
+# --------------------------------------------------------------------------
+
+
+@kernel
+def _process_noise_rotation(s: StateRecord, c: CoefficientsRecord, phi: np.ndarray) -> None:
+    """w_n33 = the rotation in Q's cross term; w_R must hold R̄ before the step.
+
+    M = R̄ for the left error; Exp(−φ) for the right error, its image under
+    the adjoint, so that left and right filters stay the same filter (DESIGN.md:
+    with the full reset they give the same estimate).
+    """
+    if c.error == ERROR_LEFT:
+        s.w_n33[:, :] = s.w_R
+    else:
+        so3.exp_into(phi, s.w_m33)
+        for i in range(3):
+            for j in range(3):
+                s.w_n33[i, j] = s.w_m33[j, i]  # Exp(−φ) = Exp(φ)ᵀ
+
+
+@kernel
+def _world_tilt_rows(s: StateRecord, c: CoefficientsRecord, out: np.ndarray) -> None:
+    """out (2×3) = g E W: how a change of δθ (error frame) moves ε.
+
+    E = the x, y rows of [e₃]× (so E v = (−v_y, v_x)), W = the error frame's
+    map to the world: I for the left error, R̄ (after the step) for the right.
+    """
+    g = c.gravity
+    if c.error == ERROR_LEFT:
+        for j in range(3):
+            out[0, j] = 0.0
+            out[1, j] = 0.0
+        out[0, 1] = -g
+        out[1, 0] = g
+    else:
+        R = s.w_R_tilt
+        so3.matrix_from_quat_into(s.q, R)
+        for j in range(3):
+            out[0, j] = -g * R[1, j]
+            out[1, j] = g * R[0, j]
+
+
+@kernel
+def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float) -> None:
+    """P += Q_d (Van Loan, with the cross term's rotation M in w_n33).
+
+    With the considered ε, its rows receive G = g E W times the attitude
+    noise: the same noise moves δθ and, through it, ε.
+    """
+    var_g = c.gyro_var_density
+    var_b = c.bias_var_density
+    q_aa = var_g * dt + var_b * dt * dt * dt / 3.0
+    q_ab = -0.5 * var_b * dt * dt
+    q_bb = var_b * dt
+    P = s.P
+    for i in range(3):
+        P[i, i] += q_aa
+        P[3 + i, 3 + i] += q_bb
+        for j in range(3):
+            v = q_ab * s.w_n33[i, j]
+            P[i, 3 + j] += v
+            P[3 + j, i] += v
+    if c.n_state == N_ERROR:
+        return
+    G = s.w_H  # 2×3 scratch (the update rewrites it)
+    _world_tilt_rows(s, c, G)
+    # ε receives G Δθ; the low-pass's rate ḟ does not
+    for a in range(2):
+        for j in range(3):
+            # Q_εθ = G Q_θθ = q_aa G ;  Q_εb = G Q_θb = q_ab G M
+            cross_b = 0.0
+            for k in range(3):
+                cross_b += G[a, k] * s.w_n33[k, j]
+            P[_EPS + a, j] += q_aa * G[a, j]
+            P[j, _EPS + a] += q_aa * G[a, j]
+            P[_EPS + a, 3 + j] += q_ab * cross_b
+            P[3 + j, _EPS + a] += q_ab * cross_b
+        for b in range(2):  # Q_εε = q_aa G Gᵀ
+            acc = 0.0
+            for k in range(3):
+                acc += G[a, k] * G[b, k]
+            P[_EPS + a, _EPS + b] += q_aa * acc
+
+
+@kernel
+def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float) -> None:
+    """EKF prediction: exact nominal, P ← Φ P Φᵀ + Q_d.
+
+    Φ differs from I only in the δθ rows (Φ_θθ, Φ_θb) and, with the low-pass,
+    the ε x, y rows (G Φ_θb); those rows and columns are all that change.
+    """
+    n = c.n_state
+    phi = s.w_v3
+    for i in range(3):
+        phi[i] = (gyro[i] - s.b[i]) * dt
+    so3.matrix_from_quat_into(s.q, s.w_R)
+    _process_noise_rotation(s, c, phi)  # w_n33: also Φ_θθ = Exp(−φ) for the right error
+    F = s.w_m33  # Φ_θb
+    if c.error == ERROR_LEFT:
+        so3.left_jacobian_into(phi, s.w_T[:3, :3])
+        for i in range(3):
+            for j in range(3):
+                F[i, j] = -dt * (
+                    s.w_R[i, 0] * s.w_T[0, j]
+                    + s.w_R[i, 1] * s.w_T[1, j]
+                    + s.w_R[i, 2] * s.w_T[2, j]
+                )
+    else:
+        so3.right_jacobian_into(phi, F)
+        for i in range(3):
+            for j in range(3):
+                F[i, j] *= -dt
+    so3.quat_exp_into(phi, s.w_q4)
+    s.w_p4[:] = s.q
+    so3.quat_multiply_into(s.w_p4, s.w_q4, s.q)
+    so3.quat_normalize_into(s.q)
+    G = s.w_G  # ε x, y rows of Φ: G Φ_θb, with G = g E W after the step
+    if n > N_ERROR:
+        _world_tilt_rows(s, c, s.w_H)
+        for a in range(2):
+            for j in range(3):
+                G[a, j] = s.w_H[a, 0] * F[0, j] + s.w_H[a, 1] * F[1, j] + s.w_H[a, 2] * F[2, j]
+    right = c.error != ERROR_LEFT
+    E = s.w_n33
+    P = s.P
+    for j in range(n):  # rows: Φ P
+        t0, t1, t2 = P[0, j], P[1, j], P[2, j]
+        b0, b1, b2 = P[3, j], P[4, j], P[5, j]
+        if right:
+            t0, t1, t2 = (
+                E[0, 0] * t0 + E[0, 1] * t1 + E[0, 2] * t2,
+                E[1, 0] * t0 + E[1, 1] * t1 + E[1, 2] * t2,
+                E[2, 0] * t0 + E[2, 1] * t1 + E[2, 2] * t2,
+            )
+        P[0, j] = t0 + F[0, 0] * b0 + F[0, 1] * b1 + F[0, 2] * b2
+        P[1, j] = t1 + F[1, 0] * b0 + F[1, 1] * b1 + F[1, 2] * b2
+        P[2, j] = t2 + F[2, 0] * b0 + F[2, 1] * b1 + F[2, 2] * b2
+        if n > N_ERROR:
+            P[_EPS, j] += G[0, 0] * b0 + G[0, 1] * b1 + G[0, 2] * b2
+            P[_EPS + 1, j] += G[1, 0] * b0 + G[1, 1] * b1 + G[1, 2] * b2
+    for i in range(n):  # columns: (Φ P) Φᵀ
+        t0, t1, t2 = P[i, 0], P[i, 1], P[i, 2]
+        b0, b1, b2 = P[i, 3], P[i, 4], P[i, 5]
+        if right:
+            t0, t1, t2 = (
+                E[0, 0] * t0 + E[0, 1] * t1 + E[0, 2] * t2,
+                E[1, 0] * t0 + E[1, 1] * t1 + E[1, 2] * t2,
+                E[2, 0] * t0 + E[2, 1] * t1 + E[2, 2] * t2,
+            )
+        P[i, 0] = t0 + F[0, 0] * b0 + F[0, 1] * b1 + F[0, 2] * b2
+        P[i, 1] = t1 + F[1, 0] * b0 + F[1, 1] * b1 + F[1, 2] * b2
+        P[i, 2] = t2 + F[2, 0] * b0 + F[2, 1] * b1 + F[2, 2] * b2
+        if n > N_ERROR:
+            P[i, _EPS] += G[0, 0] * b0 + G[0, 1] * b1 + G[0, 2] * b2
+            P[i, _EPS + 1] += G[1, 0] * b0 + G[1, 1] * b1 + G[1, 2] * b2
+    _add_process_noise(s, c, dt)
+
+
+@kernel
+def _sigma_points(s: StateRecord, c: CoefficientsRecord) -> bool:
+    """w_sigma_chi = 0, ±columns of √((n + λ) P) (Cholesky). False if P is not PD."""
+    n = c.n_state
+    A = s.w_B[:n, :n]
+    L = s.w_A[:n, :n]
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = c.sigma_spread * s.P[i, j]
+    if not cholesky_into(A, L):
+        return False
+    chi = s.w_sigma_chi
+    for i in range(n):
+        chi[0, i] = 0.0
+        for j in range(n):
+            chi[1 + j, i] = L[i, j]
+            chi[1 + n + j, i] = -L[i, j]
+    return True
+
+
+@kernel
+def _weighted_mean_and_covariance_of_chi(
+    s: StateRecord, c: CoefficientsRecord, mean: np.ndarray
+) -> None:
+    """mean = Σ wᵢ χᵢ and P = Σ wᵢᶜ (χᵢ − mean)(χᵢ − mean)ᵀ over w_sigma_chi."""
+    n = c.n_state
+    chi = s.w_sigma_chi
+    for i in range(n):
+        acc = c.sigma_w0_mean * chi[0, i]
+        for k in range(1, 2 * n + 1):
+            acc += c.sigma_wi * chi[k, i]
+        mean[i] = acc
+    for i in range(n):
+        for j in range(i + 1):
+            acc = c.sigma_w0_cov * (chi[0, i] - mean[i]) * (chi[0, j] - mean[j])
+            for k in range(1, 2 * n + 1):
+                acc += c.sigma_wi * (chi[k, i] - mean[i]) * (chi[k, j] - mean[j])
+            s.P[i, j] = acc
+            s.P[j, i] = acc
+
+
+@kernel
+def _predict_sigma_point(
+    s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float
+) -> bool:
+    """Unscented prediction through the exact dynamics, then the prediction reset.
+
+    Each sigma point is a full state [chart(χθ) R̄, b̄ + χb] propagated with its
+    own bias; the propagated points are read back as errors about the
+    propagated nominal, and their mean (non-zero in general) is reset into it.
+    A considered ε follows its point's attitude error: ε' = ε + g E (W'χθ' − Wχθ).
+    """
+    if not _sigma_points(s, c):
+        return False
+    n = c.n_state
+    so3.matrix_from_quat_into(s.q, s.w_R)  # R̄ before the step, for Q_d
+    phi = s.w_v3
+    for i in range(3):
+        phi[i] = (gyro[i] - s.b[i]) * dt
+    _process_noise_rotation(s, c, phi)
+    # the new reference: the nominal propagated with the nominal bias
+    so3.quat_exp_into(phi, s.w_q4)
+    so3.quat_multiply_into(s.q, s.w_q4, s.w_prior_q)
+    so3.quat_normalize_into(s.w_prior_q)
+    chi = s.w_sigma_chi
+    G_before = s.w_K  # ε rows before the step (W = R̄): reuse 2 columns of scratch
+    if n > N_ERROR:
+        _world_tilt_rows(s, c, s.w_H)
+        for a in range(2):
+            for j in range(3):
+                G_before[j, a] = s.w_H[a, j]
+    for k in range(2 * n + 1):
+        qk = s.w_sigma_q[k]
+        retract_into(s.q, chi[k, :3], c.error, c.chart, qk, s.w_q4)
+        for i in range(3):
+            phi[i] = (gyro[i] - s.b[i] - chi[k, 3 + i]) * dt
+        so3.quat_exp_into(phi, s.w_q4)
+        s.w_p4[:] = qk
+        so3.quat_multiply_into(s.w_p4, s.w_q4, qk)
+        if n > N_ERROR:
+            for a in range(2):
+                acc = 0.0
+                for j in range(3):
+                    acc += G_before[j, a] * chi[k, j]
+                chi[k, _EPS + a] -= acc
+        local_into(qk, s.w_prior_q, c.error, c.chart, chi[k, :3], s.w_q4)
+    s.q[:] = s.w_prior_q
+    if n > N_ERROR:
+        _world_tilt_rows(s, c, s.w_H)  # W' = R̄ after the step
+        for k in range(2 * n + 1):
+            for a in range(2):
+                acc = 0.0
+                for j in range(3):
+                    acc += s.w_H[a, j] * chi[k, j]
+                chi[k, _EPS + a] += acc
+    _weighted_mean_and_covariance_of_chi(s, c, s.w_dx)
+    for i in range(_EPS, n):  # ε is considered: its mean stays zero
+        s.w_dx[i] = 0.0
+    _add_process_noise(s, c, dt)
+    _apply_correction(s, c, s.w_dx)
+    return True
+
+
+@kernel
+def predict(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float) -> None:
+    """Propagate nominal and covariance over Δt with the gyroscope sample."""
+    if c.update == UPDATE_SIGMA_POINT and _predict_sigma_point(s, c, gyro, dt):
+        return
+    _predict_linear(s, c, gyro, dt)
+
+
+# --------------------------------------------------------------------------
+# Gravity update
+# --------------------------------------------------------------------------
+
+
+@kernel
+def _gravity_residual(s: StateRecord, q: np.ndarray, r: np.ndarray) -> None:
+    gravity.residual_into(q, s.w_z, s.w_Bz, r, s.w_R, s.w_h, s.w_u3)
+
+
+@kernel
+def _gravity_jacobian(s: StateRecord, c: CoefficientsRecord) -> None:
+    """w_H = [H_θ, 0, H_ε] at the point where :func:`_gravity_residual` left w_R, w_h."""
+    gravity.jacobian_into(s.w_R, s.w_h, s.w_z, s.w_Bz, c.error, s.w_H, s.w_m33, s.w_n33)
+    if c.n_state == N_ERROR:
+        return
+    # H_ε = (1/g) B_zᵀ R̄ᵀ [e₃]×: R̄ᵀ[e₃]× e_x = R̄ᵀ e_y, e_y ↦ −R̄ᵀ e_x, e_z ↦ 0;
+    # the low-pass's rate is not measured
+    inv_g = 1.0 / c.gravity
+    for k in range(2):
+        s.w_H[k, _EPS + 2] = 0.0
+        for i in range(_RATE, c.n_state):
+            s.w_H[k, i] = 0.0
+        s.w_H[k, _EPS] = inv_g * (
+            s.w_Bz[0, k] * s.w_R[1, 0] + s.w_Bz[1, k] * s.w_R[1, 1] + s.w_Bz[2, k] * s.w_R[1, 2]
+        )
+        s.w_H[k, _EPS + 1] = -inv_g * (
+            s.w_Bz[0, k] * s.w_R[0, 0] + s.w_Bz[1, k] * s.w_R[0, 1] + s.w_Bz[2, k] * s.w_R[0, 2]
+        )
+
+
+@kernel
+def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: float) -> float:
+    """C = Pi Hᵀ (w_C), S = H C + var I (w_S), K = C S⁻¹ (w_K); returns the NIS of w_r."""
+    n = c.n_state
+    H = s.w_H
+    C = s.w_C
+    K = s.w_K
+    for i in range(n):
+        for k in range(2):
+            acc = 0.0
+            for j in range(n):
+                acc += Pi[i, j] * H[k, j]
+            C[i, k] = acc
+    for a in range(2):
+        for b in range(2):
+            acc = var if a == b else 0.0
+            for j in range(n):
+                acc += H[a, j] * C[j, b]
+            s.w_S[a, b] = acc
+    s01 = 0.5 * (s.w_S[0, 1] + s.w_S[1, 0])
+    s.w_S[0, 1] = s01
+    s.w_S[1, 0] = s01
+    s00, s11 = s.w_S[0, 0], s.w_S[1, 1]
+    det = s00 * s11 - s01 * s01
+    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+    for i in range(n):
+        K[i, 0] = C[i, 0] * i00 + C[i, 1] * i01
+        K[i, 1] = C[i, 0] * i01 + C[i, 1] * i11
+    r0, r1 = s.w_r[0], s.w_r[1]
+    return r0 * r0 * i00 + 2.0 * r0 * r1 * i01 + r1 * r1 * i11
+
+
+@kernel
+def _joseph_update(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray) -> None:
+    """P = (I − K H) Pi (I − K H)ᵀ + K V Kᵀ with the considered rows of K zeroed.
+
+    The Joseph form is the covariance for any gain, so it stays exact for the
+    Schmidt gain, which leaves ε's mean (and so its rows of K) alone. It is
+    evaluated as the rank-2 update of Pi (:func:`gain_update`).
+    """
+    n = c.n_state
+    for i in range(_EPS, n):
+        s.w_K[i, 0] = 0.0
+        s.w_K[i, 1] = 0.0
+    P = s.P[:n, :n]
+    P[:, :] = Pi
+    gain_update(P, s.w_K[:n], s.w_C[:n], s.w_S, 2)
+
+
+@kernel
+def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: float) -> bool:
+    """Gauss–Newton on the MAP cost (one iteration: the EKF). False if gated out.
+
+    The considered ε stays at its mean 0 in every iterate: it enters the
+    residual linearly, so the attitude and bias iterates do not depend on it
+    (m_ε = −ε cancels H_ε ε in r + H m), and every linearisation point — the
+    last one, whose Joseph form gives the covariance, included — is one where
+    ε's estimate is what the Schmidt filter keeps, zero.
+    """
+    n = c.n_state
+    s.w_prior_q[:] = s.q
+    s.w_prior_b[:] = s.b
+    Pi = s.w_A[:n, :n]
+    d = s.w_d
+    m = s.w_m
+    dx = s.w_dx
+    H = s.w_H
+    K = s.w_K
+    r = s.w_r
+    for it in range(c.max_iterations):
+        if it == 0:
+            Pi[:, :] = s.P[:n, :n]
+            for i in range(n):
+                m[i] = 0.0
+        else:
+            local_into(s.q, s.w_prior_q, c.error, c.chart, d[:3], s.w_q4)
+            for i in range(3):
+                d[3 + i] = s.b[i] - s.w_prior_b[i]
+            for i in range(_EPS, n):
+                d[i] = 0.0
+            reset_jacobian_into(d[:3], c.error, c.chart, c.reset, s.w_m33)
+            _world_move_into(s.q, s.w_prior_q, s.w_W, s.w_q4)
+            Pi[:, :] = s.P[:n, :n]
+            _transform_blocks(s, c, Pi, s.w_m33, s.w_W, True)
+            T = s.w_m33  # m = −T d: only δθ is transported (d's considered part is 0)
+            for i in range(3):
+                m[i] = -(T[i, 0] * d[0] + T[i, 1] * d[1] + T[i, 2] * d[2])
+            for i in range(3, n):
+                m[i] = -d[i]
+        _gravity_residual(s, s.q, r)
+        _gravity_jacobian(s, c)
+        nis = _solve_gain(s, c, Pi, var)
+        if it == 0:
+            s.innovation[0] = r[0]
+            s.innovation[1] = r[1]
+            s.nis = nis
+            if gate > 0.0 and not nis <= gate:
+                return False
+        # δ = m − K (r + H m)
+        y0 = r[0]
+        y1 = r[1]
+        for j in range(n):
+            y0 += H[0, j] * m[j]
+            y1 += H[1, j] * m[j]
+        for i in range(n):
+            dx[i] = m[i] - K[i, 0] * y0 - K[i, 1] * y1
+        # the step of the estimate (ε's is discarded), and of its attitude alone
+        attitude_step2 = dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2]
+        step_norm2 = attitude_step2 + dx[3] * dx[3] + dx[4] * dx[4] + dx[5] * dx[5]
+        _move_nominal(s, c, dx)
+        s.iterations = it + 1
+        # Done when this step is below the tolerance, or when the next one will
+        # be: Gauss–Newton converges quadratically here, the next step being
+        # about the residual's curvature (order 1 per radian on S²) times
+        # ‖Δθ‖². Most steps of a filter running at rate stop after one
+        # iteration that way; it is the large corrections that iterate.
+        tolerance = c.iteration_tolerance
+        if step_norm2 <= tolerance * tolerance or attitude_step2 <= 0.1 * tolerance:
+            break
+    _joseph_update(s, c, Pi)
+    _reset_covariance(s, c, dx)
+    return True
+
+
+@kernel
+def _sigma_point_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: float) -> bool:
+    """Unscented update of the error about the nominal, then the measurement reset."""
+    if not _sigma_points(s, c):  # P lost definiteness: the linearised update still works
+        return _iterated_update(s, c, var, gate)
+    n = c.n_state
+    n_sigma = 2 * n + 1
+    chi = s.w_sigma_chi
+    rs = s.w_sigma_r
+    H = s.w_H
+    for k in range(n_sigma):
+        retract_into(s.q, chi[k, :3], c.error, c.chart, s.w_sigma_q[k], s.w_q4)
+        _gravity_residual(s, s.w_sigma_q[k], rs[k])
+        if n > N_ERROR:  # ε enters linearly: r + H_ε ε, H_ε at this point
+            _gravity_jacobian(s, c)
+            for i in range(_EPS, n):
+                rs[k, 0] += H[0, i] * chi[k, i]
+                rs[k, 1] += H[1, i] * chi[k, i]
+    rbar0 = c.sigma_w0_mean * rs[0, 0]
+    rbar1 = c.sigma_w0_mean * rs[0, 1]
+    for k in range(1, n_sigma):
+        rbar0 += c.sigma_wi * rs[k, 0]
+        rbar1 += c.sigma_wi * rs[k, 1]
+    S = s.w_S
+    C = s.w_C
+    S[0, 0], S[0, 1], S[1, 0], S[1, 1] = var, 0.0, 0.0, var
+    for i in range(n):
+        C[i, 0] = 0.0
+        C[i, 1] = 0.0
+    for k in range(n_sigma):
+        w = c.sigma_w0_cov if k == 0 else c.sigma_wi
+        e0 = rs[k, 0] - rbar0
+        e1 = rs[k, 1] - rbar1
+        S[0, 0] += w * e0 * e0
+        S[0, 1] += w * e0 * e1
+        S[1, 1] += w * e1 * e1
+        for i in range(n):  # the sigma set is symmetric about 0: E[χ] = 0, and C ≈ P Hᵀ
+            C[i, 0] += w * chi[k, i] * e0
+            C[i, 1] += w * chi[k, i] * e1
+    S[1, 0] = S[0, 1]
+    det = S[0, 0] * S[1, 1] - S[0, 1] * S[0, 1]
+    i00, i01, i11 = S[1, 1] / det, -S[0, 1] / det, S[0, 0] / det
+    nis = rbar0 * rbar0 * i00 + 2.0 * rbar0 * rbar1 * i01 + rbar1 * rbar1 * i11
+    s.innovation[0] = rbar0
+    s.innovation[1] = rbar1
+    s.nis = nis
+    if gate > 0.0 and not nis <= gate:
+        return False
+    # K = C S⁻¹ with the considered rows zero (Schmidt); δ̂ = −K r̄ as in the EKF
+    K = s.w_K
+    for i in range(n):
+        if i >= _EPS:
+            K[i, 0] = 0.0
+            K[i, 1] = 0.0
+        else:
+            K[i, 0] = C[i, 0] * i00 + C[i, 1] * i01
+            K[i, 1] = C[i, 0] * i01 + C[i, 1] * i11
+        s.w_dx[i] = -(K[i, 0] * rbar0 + K[i, 1] * rbar1)
+    gain_update(s.P[:n, :n], K[:n], C[:n], S, 2)
+    s.iterations = 1
+    _apply_correction(s, c, s.w_dx)
+    return True
+
+
+@kernel
+def _reopen_tilt(s: StateRecord, c: CoefficientsRecord) -> None:
+    """After rejecting the accelerometer too long: tilt variance back to its initial value.
+
+    The next update then moves tilt most of the way to the accelerometer,
+    while heading and bias keep what they know.
+    """
+    _set_attitude_covariance_world(s, c, c.initial_tilt_var, c.initial_heading_var, True)
+
+
+@kernel
+def _lowpass_step(
+    c: CoefficientsRecord, dt: float
+) -> tuple[float, float, float, float, float, float]:
+    """Φ (2×2) and Γ (2) of the second-order low-pass over Δt, input held constant.
+
+    ÿ + 2ζω ẏ + ω² y = ω² u with ω = √2/τ; for ζ < 1, with σ = ζω and
+    ω_d = ω √(1 − ζ²), Φ = e^(−σΔt) [[cos + (σ/ω_d) sin, sin/ω_d],
+    [−ω² sin/ω_d, cos − (σ/ω_d) sin]] and Γ = [1 − Φ₀₀, −Φ₁₀] (unit DC gain);
+    sin/ω_d is written Δt·sinc(ω_d Δt) so that ζ = 1 is its limit.
+    """
+    w = math.sqrt(2.0) / c.accel_lowpass_time
+    zeta = c.accel_lowpass_damping
+    sigma = zeta * w
+    wd = w * math.sqrt(max(1.0 - zeta * zeta, 0.0))
+    decay = math.exp(-sigma * dt)
+    cosine = math.cos(wd * dt)
+    sin_over_wd = dt * so3.sinc(wd * dt)
+    p00 = decay * (cosine + sigma * sin_over_wd)
+    p01 = decay * sin_over_wd
+    p10 = -decay * w * w * sin_over_wd
+    p11 = decay * (cosine - sigma * sin_over_wd)
+    return p00, p01, p10, p11, 1.0 - p00, -p10
+
+
+@kernel
+def _absorb_sample(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float) -> None:
+    """The low-pass takes the sample; its errors and the velocity follow.
+
+    For the first τ after priming, f̄ is the time-weighted running mean of R̄a
+    (VQF's mean-initialised low-pass): f̄ ← β f̄ + (1 − β) R̄a with β = T/(T + Δt),
+    T the time averaged so far, so its noise falls as σ_a²/T instead of lingering
+    for τ; ḟ stays 0. Then the second-order step [f̄; ḟ] ← Φ [f̄; ḟ] + Γ R̄a.
+    Per axis the errors take the same step with the sample's error η + a in
+    place of R̄a, a = ((γ − 1) v + ξ)/Δt: with u = [ε, ḟ, v],
+
+        u ← A u + b_η η + b_ξ ξ,   A = [[Φ₀₀, Φ₀₁, Γ₀ c], [Φ₁₀, Φ₁₁, Γ₁ c], [0, 0, γ]],
+        b_η = [Γ₀, Γ₁, 0],  b_ξ = [Γ₀/Δt, Γ₁/Δt, 1],  c = (γ − 1)/Δt,
+
+    var η = σ_a²/Δt, var ξ = σ_v² (1 − γ²).
+    """
+    so3.quat_rotate_into(s.q, accel, s.w_v3)  # R̄ a
+    lp = s.accel_world_lp
+    if s.lowpass_time < c.accel_lowpass_time:
+        beta = s.lowpass_time / (s.lowpass_time + dt)
+        p00, p01, p10, p11, g0, g1 = beta, 0.0, 0.0, 1.0, 1.0 - beta, 0.0
+        s.lowpass_time += dt
+    else:
+        p00, p01, p10, p11, g0, g1 = _lowpass_step(c, dt)
+    for i in range(3):
+        y, rate = lp[0, i], lp[1, i]
+        lp[0, i] = p00 * y + p01 * rate + g0 * s.w_v3[i]
+        lp[1, i] = p10 * y + p11 * rate + g1 * s.w_v3[i]
+    gamma = math.exp(-dt / c.velocity_time)
+    cv = (gamma - 1.0) / dt
+    a02, a12 = g0 * cv, g1 * cv
+    var_eta = c.accel_var_density / dt
+    var_xi = c.velocity_var * (1.0 - gamma * gamma)
+    b0, b1 = g0 / dt, g1 / dt
+    n = c.n_state
+    P = s.P
+    for axis in range(3):
+        e = _EPS + axis
+        d = _RATE + axis
+        v = _VEL + axis
+        for j in range(n):  # rows: A P
+            pe, pd, pv = P[e, j], P[d, j], P[v, j]
+            P[e, j] = p00 * pe + p01 * pd + a02 * pv
+            P[d, j] = p10 * pe + p11 * pd + a12 * pv
+            P[v, j] = gamma * pv
+        for i in range(n):  # columns: (A P) Aᵀ
+            pe, pd, pv = P[i, e], P[i, d], P[i, v]
+            P[i, e] = p00 * pe + p01 * pd + a02 * pv
+            P[i, d] = p10 * pe + p11 * pd + a12 * pv
+            P[i, v] = gamma * pv
+        # + b_η b_ηᵀ var η + b_ξ b_ξᵀ var ξ
+        P[e, e] += g0 * g0 * var_eta + b0 * b0 * var_xi
+        P[e, d] += g0 * g1 * var_eta + b0 * b1 * var_xi
+        P[d, e] += g0 * g1 * var_eta + b0 * b1 * var_xi
+        P[d, d] += g1 * g1 * var_eta + b1 * b1 * var_xi
+        P[e, v] += b0 * var_xi
+        P[v, e] += b0 * var_xi
+        P[d, v] += b1 * var_xi
+        P[v, d] += b1 * var_xi
+        P[v, v] += var_xi
+
+
+# The low-passed direction is used once f̄'s error σ_ε is below this fraction of g.
+_LINEAR_LIMIT = 0.2
+
+
+@kernel
+def accel_update(
+    s: StateRecord, c: CoefficientsRecord, t: float, accel: np.ndarray, dt: float
+) -> None:
+    """Gravity-direction update with the robustness checks; sets the step's diagnostics."""
+    if not _vector_is_finite(accel):
+        s.flags |= _ACCEL_INVALID
+        return
+    lowpass = c.accel_lowpass_time > 0.0
+    if lowpass:
+        if s.filters_primed == 2:  # primed with this very sample
+            s.filters_primed = 1
+        else:
+            _absorb_sample(s, c, accel, dt)
+        so3.quat_conjugate_into(s.q, s.w_q4)
+        so3.quat_rotate_into(s.w_q4, s.accel_world_lp[0], s.w_u3)  # R̄ᵀ f̄
+    else:
+        s.w_u3[:] = accel
+    f = s.w_u3
+    norm = math.sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2)
+    if not norm > _MIN_ACCEL_FRACTION * c.gravity:
+        s.flags |= _ACCEL_INVALID
+        return
+    for i in range(3):
+        s.w_z[i] = -f[i] / norm
+    sphere.tangent_basis_into(s.w_z, s.w_Bz)
+    if lowpass:
+        # The measurement model is first order in ε/g: while f̄'s error is a
+        # sizeable fraction of g (one sample of a vehicle on the move) its
+        # direction says little and not linearly; wait until it has averaged.
+        eps_var = max(s.P[_EPS, _EPS], s.P[_EPS + 1, _EPS + 1])
+        if eps_var > (_LINEAR_LIMIT * c.gravity) ** 2:
+            s.flags |= _ACCEL_DEFERRED
+            return
+    deviation = norm - c.gravity
+    if abs(deviation) > c.accel_norm_tolerance:
+        s.flags |= _ACCEL_REJECTED_NORM
+        s.accel_rejections += 1
+        _gravity_residual(s, s.q, s.innovation)  # still shown, not used
+        return
+    # direction variance: the sample's white noise σ_a²/Δt (unless it lives in ε)
+    # plus what the norm deviation reveals of unmodelled acceleration, over g²
+    # (not the measured ‖a‖², which the noise itself inflates: E‖a‖² = g² + 3σ²)
+    inflation = c.accel_norm_inflation * deviation
+    g2 = c.gravity * c.gravity
+    white = 0.0 if lowpass else c.accel_var_density / dt  # with the low-pass it lives in ε
+    var = max((white + inflation * inflation) / g2, _MIN_DIRECTION_VAR)
+    gate = c.accel_gate
+    if c.accel_max_disturbance_time > 0.0 and t - s.t_accel > c.accel_max_disturbance_time:
+        # disturbed for too long: more likely the attitude is wrong than the
+        # accelerometer, so tilt gets its initial uncertainty back
+        _reopen_tilt(s, c)
+        gate = 0.0
+        s.flags |= _TILT_REOPENED
+    s.w_q_before[:] = s.q
+    if not _gravity_update(s, c, var, gate):
+        # The innovation is beyond the χ² gate: more linear acceleration than the
+        # model expects (a burst, a tap). Rather than drop the sample, the model
+        # is told: ε's (or the sample's) variance grows by what the innovation
+        # shows, a = rᵀr/2 − tr S/2 per axis, which brings its NIS to 2; the
+        # sample then counts for correspondingly little, and with the low-pass
+        # the extra variance leaves with the disturbance, through ε's dynamics.
+        r0, r1 = s.innovation[0], s.innovation[1]
+        extra = max(0.5 * (r0 * r0 + r1 * r1) - 0.5 * (s.w_S[0, 0] + s.w_S[1, 1]), 0.0)
+        if lowpass:
+            for a in range(2):
+                s.P[_EPS + a, _EPS + a] += extra * g2
+        else:
+            var += extra
+        nis = s.nis
+        _gravity_update(s, c, var, 0.0)
+        s.nis = nis  # report what the innovation was, not the matched 2
+        s.flags |= _ACCEL_DISTURBED
+        s.accel_disturbances += 1
+    else:
+        s.t_accel = t
+    s.accel_used = 1
+    if lowpass and c.lowpass_restart_angle > 0.0:
+        # A large tilt correction means f̄ was gathered with the attitude
+        # grossly wrong, where the linear model of its error is poor: start
+        # it again from the next sample, whose noise is known exactly.
+        so3.quat_divide_right_into(s.q, s.w_q_before, s.w_q4)  # the world-frame move
+        cos_half_tilt = math.sqrt(min(s.w_q4[0] ** 2 + s.w_q4[3] ** 2, 1.0))
+        if 2.0 * math.acos(cos_half_tilt) > c.lowpass_restart_angle:
+            s.filters_primed = 0
+            s.flags |= _LOWPASS_RESTARTED
+
+
+@kernel
+def _gravity_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: float) -> bool:
+    """The configured update (iterated or sigma-point); False if the gate stopped it."""
+    if c.update == UPDATE_SIGMA_POINT:
+        return _sigma_point_update(s, c, var, gate)
+    return _iterated_update(s, c, var, gate)
+
+
+# --------------------------------------------------------------------------
+# Rest: detection and the zero-rate update of the bias
+# --------------------------------------------------------------------------
+
+# χ² (3 dof) at 99.9 %: a "rest" whose rate disagrees this much with the bias is motion.
+_ZERO_RATE_GATE = 16.27
+
+
+@kernel
+def _detect_rest(
+    s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, accel: np.ndarray, dt: float
+) -> bool:
+    """VQF's rest criteria: gyro and accel stay near their low-passes for rest_min_time."""
+    if not (c.rest_detection and _vector_is_finite(accel)):
+        s.rest_time = 0.0
+        return False
+    alpha = 1.0 - math.exp(-dt / c.rest_filter_time)
+    dev_g = 0.0
+    dev_a = 0.0
+    for i in range(3):
+        s.rest_gyro_lp[i] += alpha * (gyro[i] - s.rest_gyro_lp[i])
+        s.rest_accel_lp[i] += alpha * (accel[i] - s.rest_accel_lp[i])
+        dev_g += (gyro[i] - s.rest_gyro_lp[i]) ** 2
+        dev_a += (accel[i] - s.rest_accel_lp[i]) ** 2
+    still = (
+        dev_g < c.rest_gyro_threshold * c.rest_gyro_threshold
+        and dev_a < c.rest_accel_threshold * c.rest_accel_threshold
+    )
+    s.rest_time = s.rest_time + dt if still else 0.0
+    return s.rest_time >= c.rest_min_time
+
+
+@kernel
+def _zero_rate_update(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float) -> None:
+    """At rest the gyro measures its bias: y = ω_m − b̄, H = [0 I 0], V = σ_g²/Δt + σ_rest²."""
+    n = c.n_state
+    var = c.gyro_var_density / dt + c.rest_rate_var
+    P = s.P
+    S = s.w_S3
+    for i in range(3):
+        for j in range(3):
+            S[i, j] = P[3 + i, 3 + j] + (var if i == j else 0.0)
+    det = inverse_3x3_into(S, s.w_m33)  # S⁻¹ in w_m33
+    if not det > 0.0:
+        return
+    y = s.w_v3
+    for i in range(3):
+        y[i] = gyro[i] - s.b[i]
+    nis = 0.0
+    for i in range(3):
+        for j in range(3):
+            nis += y[i] * s.w_m33[i, j] * y[j]
+    if not nis <= _ZERO_RATE_GATE:
+        return
+    K = s.w_K3
+    C = s.w_C3  # P Hᵀ = P[:, b]
+    for i in range(n):
+        for j in range(3):
+            C[i, j] = P[i, 3 + j]
+        for j in range(3):
+            acc = 0.0
+            if i < _EPS:  # the considered states get no gain
+                for k in range(3):
+                    acc += C[i, k] * s.w_m33[k, j]
+            K[i, j] = acc
+    for i in range(n):
+        s.w_dx[i] = K[i, 0] * y[0] + K[i, 1] * y[1] + K[i, 2] * y[2]
+    gain_update(P[:n, :n], K[:n], C[:n], S, 3)
+    _apply_correction(s, c, s.w_dx)
+    s.at_rest = 1
+
+
+# --------------------------------------------------------------------------
+# One sample
+# --------------------------------------------------------------------------
+
+
+@kernel
+def _accel_usable_for_alignment(c: CoefficientsRecord, accel: np.ndarray) -> bool:
+    norm = math.sqrt(accel[0] ** 2 + accel[1] ** 2 + accel[2] ** 2)
+    return (
+        math.isfinite(norm)
+        and norm > _MIN_ACCEL_FRACTION * c.gravity
+        and abs(norm - c.gravity) <= max(c.accel_norm_tolerance, 0.0)
+    )
+
+
+@kernel
+def step(
+    s: StateRecord, c: CoefficientsRecord, t: float, gyro: np.ndarray, accel: np.ndarray
+) -> None:
+    """Process one IMU sample taken at time t (s): gyro (rad/s), accel (m/s²), both FRD.
+
+    The gyro sample is held over (t_prev, t]. Samples that cannot be used are
+    skipped and say why in ``s.flags``; the estimate stays finite throughout.
+    """
+    _step_sample(s, c, t, gyro, accel)
+    # the structured products round the two triangles differently
+    symmetrise(s.P[: c.n_state, : c.n_state])
+
+
+@kernel
+def _step_sample(
+    s: StateRecord, c: CoefficientsRecord, t: float, gyro: np.ndarray, accel: np.ndarray
+) -> None:
+    s.flags = 0
+    s.accel_used = 0
+    s.iterations = 0
+    s.at_rest = 0
+    s.nis = math.nan
+    s.innovation[0] = math.nan
+    s.innovation[1] = math.nan
+    if not s.initialised:
+        if math.isfinite(t) and _vector_is_finite(gyro) and _accel_usable_for_alignment(c, accel):
+            _align(s, c, accel, False, False)
+            s.initialised = 1
+            s.t = t
+            s.t_accel = t
+            s.samples += 1
+            s.flags = _INITIALISED
+            s.accel_used = 1
+        else:
+            s.flags = _NOT_INITIALISED
+        return
+    dt = t - s.t
+    if not dt > 0.0:  # also NaN
+        s.flags = _TIME_NOT_INCREASING
+        return
+    if not _vector_is_finite(gyro):
+        s.flags = _GYRO_INVALID
+        return
+    s.samples += 1
+    if dt > c.max_dt:
+        # Nothing is known of the motion in the gap: re-align tilt from this
+        # sample's accelerometer, keep heading and bias (which drift slowly).
+        if _accel_usable_for_alignment(c, accel):
+            for i in range(3):
+                s.P[3 + i, 3 + i] += c.bias_var_density * dt
+            _align(s, c, accel, True, True)
+            s.t = t
+            s.t_accel = t
+            s.flags = _GAP_REALIGNED
+            s.accel_used = 1
+        else:
+            s.initialised = 0
+            s.flags = _GAP_REALIGNED | _NOT_INITIALISED
+        return
+    predict(s, c, gyro, dt)
+    s.t = t
+    if not s.filters_primed and _vector_is_finite(accel):
+        _prime_filters(s, c, gyro, accel, dt)
+        s.filters_primed = 2  # tells accel_update the low-pass already holds this sample
+    if _detect_rest(s, c, gyro, accel, dt):
+        _zero_rate_update(s, c, gyro, dt)
+    accel_update(s, c, t, accel, dt)

@@ -1,0 +1,63 @@
+"""Accuracy on BROAD beside the peers: the scores behind tools/accuracy.py and its test.
+
+The dataset's scoring: RMSE over the ``movement`` samples with valid truth, of
+the inclination (6-D: heading is free) per trial, then the mean over trials.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mavest.datasets.broad import BroadTrial
+from mavest.estimator import EstimatorConfig, estimate
+from mavest.evaluation.metrics import rmse_deg
+from mavest.evaluation.peers import PEERS
+
+Filter = Callable[[BroadTrial], np.ndarray]
+
+
+def mavest_filter(config: EstimatorConfig | None = None) -> Filter:
+    """mavest in 6-D (gyro and accelerometer) with ``config`` (None: the defaults)."""
+
+    def run(trial: BroadTrial) -> np.ndarray:
+        return estimate(trial.t, trial.gyro, trial.accel, config=config).q
+
+    return run
+
+
+def peer_filter(name: str) -> Filter:
+    """A peer from :data:`mavest.evaluation.peers.PEERS` in 6-D, at the trial's rate."""
+    adapter = PEERS[name]
+
+    def run(trial: BroadTrial) -> np.ndarray:
+        return adapter(trial.t, trial.gyro, trial.accel, None, trial.rate)
+
+    return run
+
+
+@dataclass(frozen=True)
+class InclinationScores:
+    """Per-trial inclination RMSE (°) of each filter, trials in the same order for all."""
+
+    trials: tuple[str, ...]
+    scores: dict[str, np.ndarray]
+
+    def mean(self, name: str, subset: Sequence[int] | None = None) -> float:
+        values = self.scores[name]
+        return float(np.mean(values if subset is None else values[list(subset)]))
+
+
+def score_inclination(
+    trials: Sequence[BroadTrial], filters: dict[str, Filter]
+) -> InclinationScores:
+    """Every filter on every trial, scored as BROAD does."""
+    scores = {
+        name: np.array(
+            [rmse_deg(run(trial), trial.truth_q, trial.movement)["inclination"] for trial in trials]
+        )
+        for name, run in filters.items()
+    }
+    return InclinationScores(tuple(trial.name for trial in trials), scores)

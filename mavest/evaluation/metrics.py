@@ -1,0 +1,201 @@
+"""Attitude error metrics: the BROAD dataset's scoring, reimplemented.
+
+BROAD (Laidig et al. 2021, example code ``broad_utils.py``) scores an estimate by the
+error quaternion expressed in the *world* frame,
+
+    q_err = q_est ⊗ q_true⁻¹        (normalised),
+
+which is the rotation that carries the true attitude onto the estimated one, applied
+on the world side. With q_err = (w, x, y, z):
+
+* total error        2·acos(|w|)                  — the angle of q_err;
+* heading error      2·atan(|z / w|)              — its twist about the world vertical;
+* inclination error  2·acos(√(w² + z²))           — the remaining swing about a
+  horizontal world axis.
+
+These are an exact swing–twist split: q_err = q_twist ⊗ q_swing with q_twist about
+world z and q_swing about a horizontal axis. The world z axis is vertical in both ENU
+(the dataset) and NED (mavest), so the formulas hold unchanged for FRD → NED
+quaternions. The score of a trial is the RMSE over the ``movement`` samples, with
+``nanmean`` so that samples whose truth is NaN (lost optical tracking) are skipped.
+
+A 6-D filter (no magnetometer) has no heading reference: compare its inclination only,
+or first apply :func:`remove_heading_offset`.
+
+Quaternions are (w, x, y, z), Hamilton, body → world, float64, shape (N, 4) or (4,).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+__all__ = [
+    "AttitudeErrors",
+    "attitude_errors",
+    "error_quaternion",
+    "heading_offset",
+    "quat_conjugate",
+    "quat_multiply",
+    "remove_heading_offset",
+    "rmse_deg",
+    "signed_heading_error",
+]
+
+
+def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Row-wise Hamilton product p ⊗ q of (w, x, y, z) quaternions; broadcasts (4,) rows.
+
+    Vectorised over arrays (the numba kernels in ``mavest.so3`` work on one quaternion at
+    a time); NaN rows propagate as NaN.
+    """
+    p = np.asarray(p, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """Conjugate (the inverse, for unit quaternions) of (w, x, y, z) quaternions."""
+    q = np.asarray(q, dtype=np.float64)
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def _normalized(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def error_quaternion(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
+    """World-frame error q_est ⊗ q_true⁻¹, both inputs normalised first, result normalised."""
+    err = quat_multiply(_normalized(q_est), quat_conjugate(_normalized(q_true)))
+    return _normalized(err)
+
+
+@dataclass(frozen=True)
+class AttitudeErrors:
+    """Per-sample attitude errors in radians, each in [0, π]; NaN where truth is NaN."""
+
+    total: np.ndarray
+    heading: np.ndarray
+    inclination: np.ndarray
+
+
+def attitude_errors(q_est: np.ndarray, q_true: np.ndarray) -> AttitudeErrors:
+    """Total, heading and inclination error of ``q_est`` against ``q_true`` (rad).
+
+    The dataset writes the heading as 2·atan(|z/w|); 2·atan2(|z|, |w|) is the same value
+    and stays defined (π) when w = 0.
+    """
+    e = error_quaternion(q_est, q_true)
+    w = np.abs(e[..., 0])
+    z = np.abs(e[..., 3])
+    total = 2.0 * np.arccos(np.clip(w, 0.0, 1.0))
+    heading = 2.0 * np.arctan2(z, w)
+    inclination = 2.0 * np.arccos(np.clip(np.sqrt(w * w + z * z), 0.0, 1.0))
+    return AttitudeErrors(total=total, heading=heading, inclination=inclination)
+
+
+def _select(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    if mask is None:
+        return values
+    mask = np.asarray(mask)
+    if mask.dtype != bool:
+        raise TypeError("mask must be a boolean array (e.g. BroadTrial.movement)")
+    return values[mask]
+
+
+def _rms(values: np.ndarray) -> float:
+    """sqrt(nanmean(values²)); NaN (not a warning) when no finite value is left."""
+    finite = values[np.isfinite(values)]
+    return float(np.sqrt(np.mean(finite * finite))) if finite.size else float("nan")
+
+
+def rmse_deg(
+    q_est: np.ndarray, q_true: np.ndarray, mask: np.ndarray | None = None
+) -> dict[str, float]:
+    """RMSE in degrees of the total, heading and inclination errors, as BROAD scores them.
+
+    Only samples where ``mask`` is True (BROAD: ``movement``) and the truth is finite count.
+    Returns ``{"total": …, "heading": …, "inclination": …}``.
+    """
+    errors = attitude_errors(q_est, q_true)
+    return {
+        "total": float(np.degrees(_rms(_select(errors.total, mask)))),
+        "heading": float(np.degrees(_rms(_select(errors.heading, mask)))),
+        "inclination": float(np.degrees(_rms(_select(errors.inclination, mask)))),
+    }
+
+
+def signed_heading_error(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
+    """Signed twist angle (rad, in (−π, π]) of the world-frame error about world z.
+
+    Its absolute value is the BROAD heading error.
+    """
+    e = error_quaternion(q_est, q_true)
+    sign = np.where(e[..., 0] < 0.0, -1.0, 1.0)  # q and −q are the same rotation
+    return 2.0 * np.arctan2(sign * e[..., 3], np.abs(e[..., 0]))
+
+
+def _wrap(angle: np.ndarray | float) -> np.ndarray:
+    """Wrap angles to [−π, π)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _heading_rms(psi: np.ndarray, delta: float) -> float:
+    """RMS heading error after turning the estimate by δ about world z."""
+    return float(np.sqrt(np.mean(_wrap(psi + delta) ** 2)))
+
+
+def heading_offset(q_est: np.ndarray, q_true: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """The constant turn δ about world z (rad) that minimises the heading RMSE of q_z(δ) ⊗ q_est.
+
+    Left-multiplying by a world-vertical rotation changes only the twist of the error
+    (q_z(δ) ⊗ q_twist ⊗ q_swing), so each sample's heading error becomes ψᵢ + δ wrapped,
+    and the inclination error is untouched. The minimiser of Σ wrap(ψᵢ + δ)² is found in
+    two steps: the circular mean m of ψᵢ gives a centre free of wrap-around, the linear
+    mean of ψᵢ unwrapped around m gives δ = −(m + mean(wrap(ψᵢ − m))), exact when the
+    errors do not straddle m ± π. A bounded 1-D search around that value and δ = 0
+    are then compared, and the best of the three is returned, so the result never
+    increases the heading RMSE.
+    """
+    psi = _select(signed_heading_error(q_est, q_true), mask)
+    psi = psi[np.isfinite(psi)]
+    if psi.size == 0:
+        return 0.0
+    centre = float(np.arctan2(np.mean(np.sin(psi)), np.mean(np.cos(psi))))
+    candidates = [0.0, float(_wrap(-(centre + np.mean(_wrap(psi - centre)))))]
+    search = minimize_scalar(
+        lambda d: _heading_rms(psi, d),
+        bounds=(candidates[1] - 0.2, candidates[1] + 0.2),
+        method="bounded",
+        options={"xatol": 1e-10},
+    )
+    candidates.append(float(_wrap(search.x)))
+    return min(candidates, key=lambda d: _heading_rms(psi, d))
+
+
+def remove_heading_offset(
+    q_est: np.ndarray, q_true: np.ndarray, mask: np.ndarray | None = None
+) -> np.ndarray:
+    """``q_est`` turned about the world vertical by the constant that best matches ``q_true``.
+
+    Returns q_z(δ) ⊗ q_est with δ from :func:`heading_offset` over the ``mask`` samples.
+    The inclination error is unchanged sample by sample; the heading RMSE over ``mask``
+    does not increase. This is how a 6-D (no magnetometer) estimate, whose heading is
+    arbitrary, can be scored on total error.
+    """
+    delta = heading_offset(q_est, q_true, mask)
+    turn = np.array([np.cos(0.5 * delta), 0.0, 0.0, np.sin(0.5 * delta)])
+    return quat_multiply(turn, _normalized(q_est))

@@ -1,0 +1,150 @@
+"""The unit sphere S²: where a direction measurement (gravity, later the magnetic field) lives.
+
+A direction has two degrees of freedom, so its residual is a 2-vector in the
+tangent plane, not a 3-D difference of unit vectors (seed 000, DESIGN.md).
+
+The residual of a predicted direction h against a measured direction z is the
+rotation vector ρ that turns h onto z along the great circle,
+
+    ρ = θ (h × z)/‖h × z‖,   θ = atan2(‖h × z‖, h·z),
+
+expressed in an orthonormal basis B_z of the plane ⊥ z: r = B_zᵀ ρ. (Seed 000
+wrote θ = u·v; the angle is the arc-cosine of the dot product, and atan2 of the
+sine and cosine keeps it accurate at 0 and π.) Because ρ ⊥ z, the basis tied to
+the measurement is constant while the state moves, so r is a smooth function of
+the state whose Jacobian is exact: what the iterated filter needs to reach the
+true minimiser of its cost.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mavest import so3
+from mavest._jit import kernel
+
+# Below this ‖h × z‖ the closed forms' divisions are replaced by their limits.
+_SMALL_SINE = 1e-3
+
+
+@kernel
+def tangent_basis_into(v: np.ndarray, out: np.ndarray) -> None:
+    """Columns of ``out`` (3×2): an orthonormal basis of the plane ⊥ the unit vector v.
+
+    (b1, b2, v) is right-handed. The helper axis is the coordinate axis least
+    aligned with v, so the construction never divides by a small number.
+    """
+    ax, ay, az = abs(v[0]), abs(v[1]), abs(v[2])
+    # b1 = e × v / ‖e × v‖ for the coordinate axis e least aligned with v
+    if ax <= ay and ax <= az:  # e = x
+        b1x, b1y, b1z = 0.0, -v[2], v[1]
+    elif ay <= az:  # e = y
+        b1x, b1y, b1z = v[2], 0.0, -v[0]
+    else:  # e = z
+        b1x, b1y, b1z = -v[1], v[0], 0.0
+    n = math.sqrt(b1x * b1x + b1y * b1y + b1z * b1z)
+    b1x, b1y, b1z = b1x / n, b1y / n, b1z / n
+    out[0, 0], out[1, 0], out[2, 0] = b1x, b1y, b1z
+    # b2 = v × b1 is unit and completes the right-handed triad
+    out[0, 1] = v[1] * b1z - v[2] * b1y
+    out[1, 1] = v[2] * b1x - v[0] * b1z
+    out[2, 1] = v[0] * b1y - v[1] * b1x
+
+
+@kernel
+def tangent_basis(v: np.ndarray) -> np.ndarray:
+    out = np.empty((3, 2))
+    tangent_basis_into(v, out)
+    return out
+
+
+@kernel
+def log_into(h: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
+    """ρ with Exp(ρ) h = z along the shortest arc, ‖ρ‖ = θ ∈ [0, π], ρ ⊥ h, z.
+
+    For antipodal h = −z every axis ⊥ h is a shortest arc; one is chosen.
+    """
+    wx = h[1] * z[2] - h[2] * z[1]
+    wy = h[2] * z[0] - h[0] * z[2]
+    wz = h[0] * z[1] - h[1] * z[0]
+    s = math.sqrt(wx * wx + wy * wy + wz * wz)
+    c = h[0] * z[0] + h[1] * z[1] + h[2] * z[2]
+    if s > 0.0:
+        k = math.atan2(s, c) / s
+        out[0], out[1], out[2] = k * wx, k * wy, k * wz
+    elif c > 0.0:
+        out[0], out[1], out[2] = 0.0, 0.0, 0.0
+    else:
+        basis = np.empty((3, 2))
+        tangent_basis_into(h, basis)
+        out[0], out[1], out[2] = math.pi * basis[0, 0], math.pi * basis[1, 0], math.pi * basis[2, 0]
+
+
+@kernel
+def log(h: np.ndarray, z: np.ndarray) -> np.ndarray:
+    out = np.empty(3)
+    log_into(h, z, out)
+    return out
+
+
+@kernel
+def log_jacobian_into(h: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
+    """∂ρ/∂h (3×3) of ρ = log(h, z), for perturbations of h tangent to the sphere.
+
+    With w = h × z, s = ‖w‖, c = h·z, θ = atan2(s, c) and g = θ/s:
+    dρ = g dw + w dg, dw = −[z]× dh, dg = (cs − θ)/s³ · wᵀdw − zᵀdh (using s² + c² = 1), so
+
+        ∂ρ/∂h = −g [z]× − ((cs − θ)/s³) w wᵀ [z]× − w zᵀ.
+
+    Near s = 0 (h ≈ z), g → 1 and (cs − θ)/s³ → −2/3 − s²/5. Not defined at h = −z.
+    """
+    wx = h[1] * z[2] - h[2] * z[1]
+    wy = h[2] * z[0] - h[0] * z[2]
+    wz = h[0] * z[1] - h[1] * z[0]
+    s2 = wx * wx + wy * wy + wz * wz
+    s = math.sqrt(s2)
+    c = h[0] * z[0] + h[1] * z[1] + h[2] * z[2]
+    theta = math.atan2(s, c)
+    g = theta / s if s > 0.0 else 1.0
+    # m = (cs − θ)/s³ cancels catastrophically for small s; its series instead
+    m = -2.0 / 3.0 - s2 / 5.0 if (s < _SMALL_SINE and c > 0.0) else (c * s - theta) / (s2 * s)
+    # the row vector wᵀ[z]× is uᵀ with u = [z]×ᵀ w = −z × w = w × z
+    zx, zy, zz = z[0], z[1], z[2]
+    ux = wy * zz - wz * zy
+    uy = wz * zx - wx * zz
+    uz = wx * zy - wy * zx
+    w = (wx, wy, wz)
+    u = (ux, uy, uz)
+    zv = (zx, zy, zz)
+    # −g[z]×
+    out[0, 0] = 0.0
+    out[0, 1] = g * zz
+    out[0, 2] = -g * zy
+    out[1, 0] = -g * zz
+    out[1, 1] = 0.0
+    out[1, 2] = g * zx
+    out[2, 0] = g * zy
+    out[2, 1] = -g * zx
+    out[2, 2] = 0.0
+    for i in range(3):
+        for j in range(3):
+            out[i, j] += -m * w[i] * u[j] - w[i] * zv[j]
+
+
+@kernel
+def log_jacobian(h: np.ndarray, z: np.ndarray) -> np.ndarray:
+    out = np.empty((3, 3))
+    log_jacobian_into(h, z, out)
+    return out
+
+
+@kernel
+def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The smallest rotation R with R u = v, for unit vectors u, v.
+
+    Seed 000's closed form, with its angle corrected (cos θ = u·v, not θ = u·v),
+    is Exp of the S² logarithm.
+    """
+    return so3.exp(log(u, v))

@@ -1,0 +1,52 @@
+"""The command line: the demo runs and scores itself; mistakes get one line and exit code 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mavest.cli import main
+from mavest.sim import simulate
+
+
+def test_demo_prints_accuracy_against_the_truth(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--seconds", "30", "--rate", "100"]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if "tilt (inclination) RMSE" in x)
+    tilt = float(line.split()[3].rstrip("°"))
+    assert 0.0 < tilt < 3.0, line
+
+
+def test_estimate_reads_csv_and_writes_one_row_per_sample(tmp_path: Path) -> None:
+    data = simulate(10.0, 50.0, seed=1)
+    source = tmp_path / "imu.csv"
+    np.savetxt(source, np.column_stack([data.t, data.gyro, data.accel]), delimiter=",")
+    target = tmp_path / "out.csv"
+    assert main(["estimate", str(source), "-o", str(target)]) == 0
+    rows = np.loadtxt(target, delimiter=",", skiprows=1)
+    assert rows.shape == (len(data.t), 15)
+    np.testing.assert_allclose(np.linalg.norm(rows[:, 1:5], axis=1), 1.0, atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["estimate", "{tmp}/missing.csv"], "no such file"),
+        (["estimate", "{tmp}"], "is a directory"),
+        (["estimate", "{tmp}/words.csv"], "not a CSV of numbers"),
+        (["estimate", "{tmp}/narrow.csv"], "expected 7 columns"),
+        (["demo", "--config", "{tmp}/bad.toml"], "unknown estimator parameter"),
+        (["demo", "--seconds", "-1"], "must be positive"),
+    ],
+)
+def test_mistakes_get_one_line_and_exit_code_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], arguments: list[str], message: str
+) -> None:
+    (tmp_path / "words.csv").write_text("t,gx\nnot,numbers\n")
+    (tmp_path / "narrow.csv").write_text("0,1,2\n")
+    (tmp_path / "bad.toml").write_text("[estimator]\ngyro = 1\n")
+    assert main([a.format(tmp=tmp_path) for a in arguments]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and err.count("\n") == 1, err
