@@ -1,141 +1,192 @@
 """The ``mavest`` command line.
 
-Until the live MAVLink service lands, the commands are ``demo`` (the estimator
-on a simulated flight, scored against the truth) and ``estimate`` (the same on
-a CSV of IMU samples). A user's mistake ends with a one-line message and exit
-code 2, never a traceback.
+``run`` serves a live MAVLink link, ``replay`` runs a telemetry log through the
+same pipeline, ``sim`` is a simulated vehicle (JSBSim) that streams like a
+flight controller or writes a tlog with its true attitude, ``demo`` flies that
+vehicle through the whole pipeline and scores it, ``estimate`` reads a CSV.
+A user's mistake ends with a one-line message and exit code 2, never a
+traceback.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
+import asyncio
+import logging
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from mavest import __version__
 from mavest._jit import cache_is_warm
-from mavest.estimator import ConfigError, EstimatorConfig, estimate
-from mavest.evaluation.metrics import rmse_deg, signed_heading_error
-from mavest.sim import ImuNoise, Motion, simulate
+from mavest.estimator import ConfigError, estimate
+from mavest.mavlink.links import LinkError
+from mavest.mavlink.messages import IMU_MESSAGES
+from mavest.mavlink.tlog import TlogError
+from mavest.service.config import ServiceConfig
+from mavest.service.runners import Outputs, replay, run_live
+from mavest.service.signals import stop_on_signals
+
+log = logging.getLogger("mavest")
+
+EXAMPLES = """examples:
+  mavest demo                                    simulated flight → replay → .rrd, scored
+  mavest run udpin:0.0.0.0:14550                 listen where a flight controller sends
+  mavest run tcp:127.0.0.1:5760 --out udpout:127.0.0.1:14551 --rrd flight.rrd
+  mavest run /dev/ttyACM0 --baud 921600 --config configs/ardupilot.toml
+  mavest replay flight.tlog --out-tlog ours.tlog --rrd ours.rrd
+  mavest sim udpout:127.0.0.1:14550 --rate 500   a simulated vehicle for `mavest run udpin:…`
+"""
 
 
 class UsageError(Exception):
     """A mistake in what the user asked for; printed as one line, exit code 2."""
 
 
-def _load_config(path: Path | None) -> EstimatorConfig:
-    if path is None:
-        return EstimatorConfig()
+def _load_config(args: argparse.Namespace) -> ServiceConfig:
+    """The configuration file, then the command-line options over it."""
+    path: Path | None = getattr(args, "config", None)
     try:
-        return EstimatorConfig.from_toml(path)
+        config = ServiceConfig.from_toml(path) if path is not None else ServiceConfig()
+        input_changes: dict[str, Any] = {}
+        output_changes: dict[str, Any] = {}
+        for option, table, key in (
+            ("imu", input_changes, "imu"),
+            ("instance", input_changes, "imu_instance"),
+            ("system", input_changes, "system"),
+            ("request_rate", input_changes, "request_rate"),
+            ("settle", input_changes, "settle_time"),
+            ("sysid", output_changes, "system_id"),
+            ("compid", output_changes, "component_id"),
+            ("attitude_rate", output_changes, "attitude_rate"),
+        ):
+            value = getattr(args, option, None)
+            if value is not None:
+                table[key] = value
+        return config.replace(input=input_changes, output=output_changes)
     except ConfigError as error:
         raise UsageError(str(error)) from None
 
 
-# --------------------------------------------------------------------------
-# demo
-# --------------------------------------------------------------------------
+def _setup_logging(args: argparse.Namespace) -> None:
+    level = logging.INFO
+    if getattr(args, "quiet", False):
+        level = logging.WARNING
+    if getattr(args, "verbose", False):
+        level = logging.DEBUG
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("mavest: %(message)s"))
+    root = logging.getLogger("mavest")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
 
 
-def _demo(args: argparse.Namespace) -> int:
-    config = _load_config(args.config)
-    motion = Motion(
-        velocity_sigma=0.5,
-        velocity_time=2.0,
-        burst_magnitude=3.0,
-        burst_duration=1.0,
-        burst_interval=20.0,
-    )
-    noise = ImuNoise(gyro_bias_sigma=math.radians(0.5))
-    print(
-        f"mavest {__version__} demo: a simulated {args.seconds:g} s flight at {args.rate:g} Hz "
-        f"(seed {args.seed})\n"
-        "  roll ±30°, pitch ±20°, turning; velocity varying by 0.5 m/s, 3 m/s² bursts;\n"
-        "  gyro bias about 0.5°/s per axis, white noise of a good MEMS IMU; filter: "
-        f"{config.variant}\n"
-    )
-    data = simulate(args.seconds, args.rate, noise=noise, motion=motion, seed=args.seed)
+def _say_compiling() -> None:
     if not cache_is_warm():
-        print("  (first run: compiling the filter, about a minute; later runs start at once)\n")
-    # compile (or load the cache) before timing
-    estimate(data.t[:50], data.gyro[:50], data.accel[:50], config=config)
-    start = time.perf_counter()
-    out = estimate(data.t, data.gyro, data.accel, config=config)
-    elapsed = time.perf_counter() - start
+        log.info("first run: compiling the filter (about a minute; later runs start at once)")
 
-    settled = data.t >= 10.0
-    heading = np.degrees(signed_heading_error(out.q, data.q_true))
-    scores = rmse_deg(out.q, data.q_true, settled)
-    euler_error = np.degrees(_wrap(out.euler - _euler(data.q_true)))
-    bias_error = np.degrees(np.abs(out.bias[-1] - data.bias_true[-1]))
-    bias_sigma = np.degrees(np.sqrt(np.diag(out.cov[-1])[3:]))
-    tilt_sigma = np.degrees(np.sqrt(0.5 * (out.cov[:, 0, 0] + out.cov[:, 1, 1])))
 
-    rows = [
-        ("tilt (inclination) RMSE", f"{scores['inclination']:.3f}°", "after 10 s"),
-        (
-            "  its 1σ claimed by the filter",
-            f"{np.sqrt(np.mean(tilt_sigma[settled] ** 2)):.3f}°",
-            "",
-        ),
-        ("roll RMSE", f"{_rms(euler_error[settled, 0]):.3f}°", ""),
-        ("pitch RMSE", f"{_rms(euler_error[settled, 1]):.3f}°", ""),
-        (
-            "heading drift",
-            f"{_wrap_deg(heading[-1] - heading[0]):.2f}°",
-            "over the flight; 6-D: nothing corrects it",
-        ),
-        ("gyro bias error at the end", _triple(bias_error, "°/s"), "x, y, z"),
-        ("  its 1σ claimed by the filter", _triple(bias_sigma, "°/s"), ""),
-        ("accelerometer used", f"{100 * out.accel_used.mean():.1f} %", "of samples"),
-        ("  inflated as disturbed", f"{100 * np.mean(out.flags & 16 != 0):.1f} %", "χ² gate"),
-        ("cost", f"{elapsed / len(data.t) * 1e6:.2f} µs/sample", f"{len(data.t)} samples"),
-    ]
-    peer = _vqf_inclination(data, settled)
-    if peer is not None:
-        rows.insert(2, ("  VQF on the same samples", f"{peer:.3f}°", "its defaults"))
-    width = max(len(r[0]) for r in rows)
-    for label, value, note in rows:
-        print(f"  {label:<{width}}  {value:>22}  {note}")
-    print("\nEvery number is against the simulator's truth; `make test` checks the math.")
+# --------------------------------------------------------------------------
+# run / replay
+# --------------------------------------------------------------------------
+
+
+def _run(args: argparse.Namespace) -> int:
+    config = _load_config(args)
+    _say_compiling()
+    outputs = Outputs(tlog=args.out_tlog, rrd=args.rrd)
+    try:
+        report = asyncio.run(
+            run_live(args.connection, config, tuple(args.out), outputs, baud=args.baud)
+        )
+    except (LinkError, TlogError) as error:
+        raise UsageError(str(error)) from None
+    print(report.summary())
     return 0
 
 
-def _vqf_inclination(data: object, settled: np.ndarray) -> float | None:
-    """VQF's score on the same flight when the package is installed (a dev extra)."""
+def _replay(args: argparse.Namespace) -> int:
+    config = _load_config(args)
+    if args.speed is not None and args.speed <= 0:
+        raise UsageError("--speed must be positive (1 = real time)")
+    _say_compiling()
+    outputs = Outputs(tlog=args.out_tlog, rrd=args.rrd)
+
+    async def main() -> Any:
+        with stop_on_signals() as stop:
+            return await replay(args.tlog, config, outputs, speed=args.speed, stop=stop)
+
     try:
-        from mavest.evaluation.peers import run_vqf
-
-        q = run_vqf(data.t, data.gyro, data.accel)
-    except ImportError:
-        return None
-    return rmse_deg(q, data.q_true, settled)["inclination"]
-
-
-def _euler(q: np.ndarray) -> np.ndarray:
-    from mavest import so3
-
-    return so3.euler_zyx_from_quats(q)
+        report = asyncio.run(main())
+    except TlogError as error:
+        raise UsageError(str(error)) from None
+    print(report.summary())
+    if not report.pipeline.streams:
+        return 1
+    return 0
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+# --------------------------------------------------------------------------
+# sim / demo
+# --------------------------------------------------------------------------
 
 
-def _wrap_deg(angle: float) -> float:
-    return float((angle + 180.0) % 360.0 - 180.0)
+def _sim(args: argparse.Namespace) -> int:
+    from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
+
+    if args.rate < 1 or args.rate > 2000:
+        raise UsageError("--rate must be 1–2000 Hz")
+    autopilot = AUTOPILOTS[args.autopilot]
+    if args.tlog is not None:
+        if args.seconds is None:
+            raise UsageError("--tlog needs --seconds (how long a flight to write)")
+        summary = write_flight_tlog(args.tlog, args.seconds, args.rate, autopilot, args.seed)
+        print(summary)
+        return 0
+    try:
+        report = asyncio.run(
+            stream_flight(args.connection, args.rate, autopilot, args.seed, seconds=args.seconds)
+        )
+    except LinkError as error:
+        raise UsageError(str(error)) from None
+    print(report.describe())
+    if args.report is not None:
+        args.report.write_text(report.to_json())
+    return 0
 
 
-def _rms(values: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(values * values)))
+def _demo(args: argparse.Namespace) -> int:
+    from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
 
-
-def _triple(values: np.ndarray, unit: str) -> str:
-    return ", ".join(f"{v:.3f}" for v in values) + f" {unit}"
+    output_dir: Path = args.output_dir
+    try:
+        output_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UsageError(f"cannot create {output_dir}: {error.strerror}") from None
+    flight = output_dir / "flight.tlog"
+    print(
+        f"mavest {__version__} demo: a {args.seconds:g} s Cessna 172 flight from JSBSim, turning "
+        f"under its autopilot,\nstreaming ArduPilot RAW_IMU at {args.rate:g} Hz with noise, "
+        "bias and quantisation, replayed through mavest.\n"
+    )
+    start = time.perf_counter()
+    print(write_flight_tlog(flight, args.seconds, args.rate, AUTOPILOTS["ardupilot"], args.seed))
+    print(f"  ({time.perf_counter() - start:.1f} s)\n")
+    config = _load_config(args)
+    _say_compiling()
+    outputs = Outputs(tlog=output_dir / "mavest.tlog", rrd=output_dir / "mavest.rrd")
+    report = asyncio.run(replay(flight, config, outputs, progress=False))
+    print(report.summary())
+    print(
+        "\nThe truth is the flight model's attitude (SIMSTATE in the tlog). Open the recording "
+        f"with `rerun {outputs.rrd}`;\nplot ours against the truth in any tlog tool from "
+        f"{outputs.tlog}."
+    )
+    return 0
 
 
 # --------------------------------------------------------------------------
@@ -144,7 +195,7 @@ def _triple(values: np.ndarray, unit: str) -> str:
 
 
 def _estimate_csv(args: argparse.Namespace) -> int:
-    config = _load_config(args.config)
+    config = _load_config(args).estimator
     path: Path = args.input
     if path.is_dir():
         raise UsageError(f"{path}: is a directory, not a CSV file")
@@ -179,25 +230,147 @@ def _estimate_csv(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------
 
 
+def _add_common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config", type=Path, metavar="FILE", help="TOML with [estimator], [input], [output]"
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="say more")
+    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+
+
+def _add_stream_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("streams and output (override the config file)")
+    group.add_argument(
+        "--imu",
+        choices=("auto", "all", *IMU_MESSAGES),
+        help="IMU message to estimate from (default auto: the best one each vehicle sends)",
+    )
+    group.add_argument("--instance", type=int, metavar="N", help="IMU instance (default: lowest)")
+    group.add_argument(
+        "--system", type=int, metavar="ID", help="follow this vehicle only (default: all)"
+    )
+    group.add_argument(
+        "--sysid", type=int, metavar="ID", help="mavest's system id (default: the vehicle's)"
+    )
+    group.add_argument(
+        "--compid", type=int, metavar="ID", help="mavest's component id (default 191)"
+    )
+    group.add_argument(
+        "--attitude-rate",
+        type=float,
+        metavar="HZ",
+        help="ATTITUDE rate (default 0: one per IMU sample)",
+    )
+    group.add_argument("--rrd", type=Path, metavar="PATH", help="save a Rerun recording")
+    group.add_argument(
+        "--out-tlog",
+        type=Path,
+        metavar="PATH",
+        help="write a tlog of every input message plus mavest's ATTITUDE",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mavest",
         description="Attitude and gyro-bias estimation for MAVLink vehicles: an error-state "
         "Kalman filter on SO(3) × R³ that says how sure it is.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"mavest {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
+    run = commands.add_parser(
+        "run",
+        help="estimate live from a MAVLink link and send ATTITUDE back",
+        description="Read IMU messages (RAW_IMU, SCALED_IMU/2/3, HIGHRES_IMU) from a "
+        "MAVLink link, estimate attitude and gyro bias per vehicle, and send ATTITUDE and "
+        "ATTITUDE_QUATERNION (and a HEARTBEAT at 1 Hz) back on the link and to every --out. "
+        "Runs until Ctrl-C or SIGTERM, then flushes its files and exits 0.",
+        epilog="CONNECTION: udpin:HOST:PORT (listen; replies go to the sender), "
+        "udpout:HOST:PORT, tcp:HOST:PORT (reconnects), tcpin:HOST:PORT, or a serial device "
+        "(/dev/ttyUSB0, with --baud).",
+    )
+    run.add_argument("connection", metavar="CONNECTION", help="where the IMU data comes from")
+    run.add_argument(
+        "--out",
+        action="append",
+        default=[],
+        metavar="CONNECTION",
+        help="also send estimates here (repeatable)",
+    )
+    run.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    run.add_argument(
+        "--request-rate",
+        type=float,
+        metavar="HZ",
+        help="ask the flight controller for the IMU message at this rate "
+        "(MAV_CMD_SET_MESSAGE_INTERVAL; default: config, 0 = don't ask)",
+    )
+    _add_stream_options(run)
+    _add_common(run)
+    run.set_defaults(handler=_run)
+
+    rep = commands.add_parser(
+        "replay",
+        help="run a telemetry log (.tlog) through the estimator",
+        description="Replay a tlog through the same pipeline as `run`: as fast as possible, "
+        "or paced with --speed. Prints a summary: samples, rate, gaps, rejected samples, and "
+        "accuracy against the log's own ATTITUDE (and SIMSTATE, a simulator's truth).",
+    )
+    rep.add_argument("tlog", type=Path, metavar="FILE.tlog")
+    rep.add_argument("--speed", type=float, help="pace the replay (1 = real time; default: fast)")
+    rep.add_argument(
+        "--settle", type=float, metavar="S", help="seconds before accuracy is scored (default 10)"
+    )
+    _add_stream_options(rep)
+    _add_common(rep)
+    rep.set_defaults(handler=_replay)
+
+    sim = commands.add_parser(
+        "sim",
+        help="a simulated vehicle (JSBSim) streaming IMU like a flight controller",
+        description="Fly a Cessna 172 in JSBSim under its autopilot (turns, light turbulence) "
+        "and send its IMU as the autopilot would (ArduPilot RAW_IMU or PX4 HIGHRES_IMU, with "
+        "noise, bias and quantisation) over MAVLink in real time, with HEARTBEAT and the true "
+        "attitude as SIMSTATE; honours SET_MESSAGE_INTERVAL. It scores the ATTITUDE it gets "
+        "back. With --tlog, writes the flight to a file instead, as fast as it can.",
+    )
+    sim.add_argument(
+        "connection",
+        nargs="?",
+        default="udpout:127.0.0.1:14550",
+        metavar="CONNECTION",
+        help="where to stream (default udpout:127.0.0.1:14550)",
+    )
+    sim.add_argument("--rate", type=float, default=200.0, help="IMU rate in Hz (default 200)")
+    sim.add_argument(
+        "--autopilot", choices=("ardupilot", "px4"), default="ardupilot", help="message flavour"
+    )
+    sim.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    sim.add_argument("--seed", type=int, default=1, help="flight and noise seed (default 1)")
+    sim.add_argument("--tlog", type=Path, metavar="PATH", help="write a tlog instead of streaming")
+    sim.add_argument("--report", type=Path, metavar="PATH", help="write the score as JSON")
+    sim.set_defaults(handler=_sim)
+
     demo = commands.add_parser(
         "demo",
-        help="run the estimator on a simulated flight and print its accuracy",
-        description="Simulate a flight (attitude, gyro bias, noisy IMU samples), run the "
-        "estimator on it and compare with the truth; VQF runs beside it when installed.",
+        help="fly the simulated vehicle through the whole pipeline and score it",
+        description="Write a simulated flight to a tlog (with the true attitude), replay it "
+        "through mavest into a Rerun recording and an output tlog, and print the accuracy "
+        "against the truth.",
     )
     demo.add_argument("--seconds", type=float, default=120.0, help="flight length (default 120)")
-    demo.add_argument("--rate", type=float, default=200.0, help="IMU rate in Hz (default 200)")
+    demo.add_argument("--rate", type=float, default=400.0, help="IMU rate in Hz (default 400)")
     demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    demo.add_argument("--config", type=Path, help="TOML file with an [estimator] table")
+    demo.add_argument(
+        "--output-dir",
+        type=Path,
+        default=Path("demo-output"),
+        help="where the tlogs and the .rrd go (default ./demo-output)",
+    )
+    _add_common(demo)
     demo.set_defaults(handler=_demo)
 
     csv = commands.add_parser(
@@ -209,18 +382,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     csv.add_argument("input", type=Path, help="CSV file ('#' starts a comment line)")
     csv.add_argument("-o", "--output", type=Path, help="output CSV (default: standard output)")
-    csv.add_argument("--config", type=Path, help="TOML file with an [estimator] table")
+    _add_common(csv)
     csv.set_defaults(handler=_estimate_csv)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if getattr(args, "seconds", 1.0) <= 0 or getattr(args, "rate", 1.0) <= 0:
-        print("mavest: --seconds and --rate must be positive", file=sys.stderr)
+    if getattr(args, "seconds", 1.0) is not None and getattr(args, "seconds", 1.0) <= 0:
+        print("mavest: --seconds must be positive", file=sys.stderr)
         return 2
+    if getattr(args, "rate", 1.0) <= 0:
+        print("mavest: --rate must be positive", file=sys.stderr)
+        return 2
+    _setup_logging(args)
     try:
-        return args.handler(args)
+        return int(args.handler(args))
     except UsageError as error:
         print(f"mavest: {error}", file=sys.stderr)
         return 2

@@ -11,12 +11,17 @@ from mavest.cli import main
 from mavest.sim import simulate
 
 
-def test_demo_prints_accuracy_against_the_truth(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["demo", "--seconds", "30", "--rate", "100"]) == 0
+def test_demo_flies_through_the_pipeline_and_scores_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    arguments = ["demo", "--seconds", "30", "--rate", "200", "--output-dir", str(tmp_path)]
+    assert main(arguments) == 0
     out = capsys.readouterr().out
-    line = next(x for x in out.splitlines() if "tilt (inclination) RMSE" in x)
-    tilt = float(line.split()[3].rstrip("°"))
-    assert 0.0 < tilt < 3.0, line
+    line = next(x for x in out.splitlines() if "vs truth (SIMSTATE)" in x)
+    tilt = float(line.split("tilt ")[1].split("°")[0])
+    assert 0.0 < tilt < 4.0, line
+    for name in ("flight.tlog", "mavest.tlog", "mavest.rrd"):
+        assert (tmp_path / name).stat().st_size > 0
 
 
 def test_estimate_reads_csv_and_writes_one_row_per_sample(tmp_path: Path) -> None:
@@ -39,6 +44,8 @@ def test_estimate_reads_csv_and_writes_one_row_per_sample(tmp_path: Path) -> Non
         (["estimate", "{tmp}/narrow.csv"], "expected 7 columns"),
         (["demo", "--config", "{tmp}/bad.toml"], "unknown estimator parameter"),
         (["demo", "--seconds", "-1"], "must be positive"),
+        (["run", "udpin:nowhere"], "needs HOST:PORT"),
+        (["sim", "--tlog", "{tmp}/x.tlog"], "--tlog needs --seconds"),
     ],
 )
 def test_mistakes_get_one_line_and_exit_code_2(

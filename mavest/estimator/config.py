@@ -202,15 +202,19 @@ class EstimatorConfig:
     @classmethod
     def from_toml(cls, path: str | Path, table: str = "estimator") -> EstimatorConfig:
         """Read the ``[estimator]`` table of a TOML file (other tables are ignored)."""
-        path = Path(path)
-        try:
-            with path.open("rb") as stream:
-                document = tomllib.load(stream)
-        except OSError as error:
-            raise ConfigError(f"cannot read {path}: {error.strerror}") from None
-        except tomllib.TOMLDecodeError as error:
-            raise ConfigError(f"{path} is not valid TOML: {error}") from None
-        return cls.from_mapping(document.get(table, {}))
+        return cls.from_mapping(read_toml(path).get(table, {}))
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """A TOML file as a dict; :class:`ConfigError` says why it cannot be read."""
+    path = Path(path)
+    try:
+        with path.open("rb") as stream:
+            return tomllib.load(stream)
+    except OSError as error:
+        raise ConfigError(f"cannot read {path}: {error.strerror}") from None
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path} is not valid TOML: {error}") from None
 
 
 def _require(condition: bool, message: str) -> None:

@@ -1,0 +1,123 @@
+"""A vehicle's clock as one IMU stream shows it: wrap, reboot, gaps, duplicates.
+
+Flight controllers stamp IMU messages with time since boot: ``time_boot_ms``
+(uint32, wraps after 49.7 days) or ``time_usec`` (uint64 on the wire, but older
+ArduPilot fills it from a 32-bit µs counter that wraps every 71.6 minutes).
+A timestamp that goes back is one of three things, told apart by how far:
+a wrap (it went back by almost 2³² ticks), a packet out of order (a little),
+or a reboot (more than that). A step forward longer than a few sample periods
+is a gap; the estimator decides whether to propagate through it or re-align
+(its ``max_dt``), the clock only names it.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import NamedTuple
+
+WRAP_TICKS = 1 << 32
+
+
+class ClockEvent(enum.Enum):
+    FIRST = "first"  # the stream's first sample
+    NEXT = "next"  # the usual case
+    GAP = "gap"  # later than expected by more than the gap threshold (used)
+    WRAPPED = "wrapped"  # the 32-bit counter wrapped (used)
+    DUPLICATE = "duplicate"  # same timestamp as the last sample (dropped)
+    OUT_OF_ORDER = "out_of_order"  # slightly older than the last sample (dropped)
+    OFF_TIMELINE = "off_timeline"  # far from the timeline, not (yet) confirmed (dropped)
+    REBOOT = "reboot"  # time went back and stayed back: the vehicle restarted (re-initialise)
+
+    @property
+    def used(self) -> bool:
+        return self not in (ClockEvent.DUPLICATE, ClockEvent.OUT_OF_ORDER, ClockEvent.OFF_TIMELINE)
+
+
+class ClockReading(NamedTuple):
+    event: ClockEvent
+    t: float  # s since the vehicle's boot, wraps undone
+    dt: float  # s since the previous used sample (0 for FIRST and REBOOT)
+
+
+class StreamClock:
+    """Turns one stream's raw timestamps into monotonic seconds and names what happened.
+
+    A timestamp far off the timeline (back by more than the reorder window, or
+    forward by more than ``max_jump``) is believed only when the next
+    ``confirm - 1`` samples continue from it: a reboot or a real jump does that,
+    a single corrupted timestamp does not, and is dropped instead of restarting
+    the estimate.
+    """
+
+    def __init__(
+        self,
+        reorder_window: float = 0.5,
+        max_wrap_step: float = 10.0,
+        gap_periods: float = 5.0,
+        min_gap: float = 0.05,
+        max_jump: float = 60.0,
+        confirm: int = 3,
+    ) -> None:
+        self.reorder_window = reorder_window  # s back that is a late packet, not a reboot
+        self.max_wrap_step = max_wrap_step  # s: a wrap must land within this of the last sample
+        self.gap_periods = gap_periods
+        self.min_gap = min_gap
+        self.max_jump = max_jump  # s forward beyond which a step needs confirming
+        self.confirm = confirm
+        self._last_ticks: int | None = None
+        self._offset = 0  # ticks added by wraps
+        self._period = 0.0  # smoothed sample period, s
+        self._candidate: int | None = None  # last ticks of an unconfirmed new timeline
+        self._candidate_count = 0
+
+    @property
+    def period(self) -> float:
+        """The stream's typical sample period (s), 0 until two samples arrived."""
+        return self._period
+
+    def _off_timeline(self, ticks: int, tick: float) -> bool:
+        """Count a sample towards a new timeline; True once it is confirmed."""
+        candidate = self._candidate
+        if candidate is not None and 0 < (ticks - candidate) * tick <= self.max_wrap_step:
+            self._candidate_count += 1
+        else:
+            self._candidate_count = 1
+        self._candidate = ticks
+        return self._candidate_count >= self.confirm
+
+    def read(self, ticks: int, tick: float) -> ClockReading:
+        last = self._last_ticks
+        if last is None:
+            self._last_ticks = ticks
+            return ClockReading(ClockEvent.FIRST, ticks * tick, 0.0)
+        delta = ticks - last
+        if delta == 0:
+            return ClockReading(ClockEvent.DUPLICATE, (ticks + self._offset) * tick, 0.0)
+        event = ClockEvent.NEXT
+        if delta < 0:
+            wrapped = delta + WRAP_TICKS
+            if last < WRAP_TICKS and 0 < wrapped * tick <= self.max_wrap_step:
+                self._offset += WRAP_TICKS
+                delta = wrapped
+                event = ClockEvent.WRAPPED
+            elif -delta * tick <= self.reorder_window:
+                return ClockReading(ClockEvent.OUT_OF_ORDER, (ticks + self._offset) * tick, 0.0)
+            elif not self._off_timeline(ticks, tick):
+                return ClockReading(ClockEvent.OFF_TIMELINE, ticks * tick, 0.0)
+            else:
+                self._last_ticks = ticks
+                self._offset = 0
+                self._period = 0.0
+                self._candidate = None
+                return ClockReading(ClockEvent.REBOOT, ticks * tick, 0.0)
+        elif delta * tick > self.max_jump and not self._off_timeline(ticks, tick):
+            return ClockReading(ClockEvent.OFF_TIMELINE, (ticks + self._offset) * tick, 0.0)
+        self._candidate = None
+        self._last_ticks = ticks
+        dt = delta * tick
+        threshold = max(self.min_gap, self.gap_periods * self._period)
+        if event is ClockEvent.NEXT and self._period > 0.0 and dt > threshold:
+            event = ClockEvent.GAP
+        else:  # gaps would drag the typical period up; leave them out of it
+            self._period = dt if self._period == 0.0 else self._period + 0.05 * (dt - self._period)
+        return ClockReading(event, (ticks + self._offset) * tick, dt)

@@ -1,0 +1,364 @@
+"""MAVLink links on asyncio: UDP in/out, TCP client/server, serial.
+
+Connection strings are the ones pymavlink and MAVProxy users know:
+``udpin:HOST:PORT`` (listen; replies go to whoever sent), ``udpout:HOST:PORT``
+(send there; replies come back), ``tcp:HOST:PORT`` (connect, reconnecting with
+back-off when the peer goes away), ``tcpin:HOST:PORT`` (listen for clients),
+and a serial device (``/dev/ttyUSB0``, ``serial:/dev/ttyACM0:921600``).
+
+Every link hands received bytes, with the peer they came from, to one callback;
+the pipeline parses them (one parser per peer, so that byte streams from
+different peers never interleave inside a packet). Sending never blocks: a
+link that cannot send right now (no peer yet, TCP reconnecting) drops the
+packet and counts it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger("mavest")
+
+Receiver = Callable[["Link", bytes, Any], None]
+
+UDP_PEER_TIMEOUT = 30.0  # s: a udpin peer silent this long gets no more replies
+
+
+class LinkError(Exception):
+    """A connection that cannot be opened (bad string, port taken, no device)."""
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A parsed connection string."""
+
+    kind: str  # "udpin" | "udpout" | "tcp" | "tcpin" | "serial"
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 115200
+
+    def __str__(self) -> str:
+        if self.kind == "serial":
+            return f"serial:{self.device}:{self.baud}"
+        return f"{self.kind}:{self.host}:{self.port}"
+
+
+_NETWORK_KINDS = {
+    "udpin": "udpin",
+    "udp": "udpin",
+    "udpout": "udpout",
+    "tcp": "tcp",
+    "tcpin": "tcpin",
+}
+
+
+def parse_endpoint(text: str, baud: int = 115200) -> Endpoint:
+    """Parse a connection string; :class:`LinkError` says what is wrong with it."""
+    text = text.strip()
+    if text.startswith("/") or text.upper().startswith("COM") or text.startswith("serial:"):
+        device = text.removeprefix("serial:")
+        if ":" in device and device.rsplit(":", 1)[1].isdigit():
+            device, baud_text = device.rsplit(":", 1)
+            baud = int(baud_text)
+        return Endpoint("serial", device=device, baud=baud)
+    kind, _, rest = text.partition(":")
+    if kind not in _NETWORK_KINDS:
+        raise LinkError(
+            f"unknown connection {text!r}: use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
+            "tcpin:HOST:PORT or a serial device such as /dev/ttyUSB0"
+        )
+    host, _, port_text = rest.rpartition(":")
+    if not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
+        raise LinkError(f"connection {text!r} needs HOST:PORT with a port in 1–65535")
+    return Endpoint(_NETWORK_KINDS[kind], host=host, port=int(port_text))
+
+
+class Link:
+    """One MAVLink connection. Subclasses open it in :meth:`start`."""
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self.endpoint = endpoint
+        self.bytes_in = 0
+        self.bytes_out = 0
+        self.packets_dropped = 0  # could not be sent (no peer, reconnecting, buffer full)
+        self._receiver: Receiver | None = None
+
+    def __str__(self) -> str:
+        return str(self.endpoint)
+
+    async def start(self, receiver: Receiver) -> None:
+        self._receiver = receiver
+
+    def send(self, packet: bytes) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release the connection (idempotent)."""
+
+    def _deliver(self, data: bytes, peer: Any) -> None:
+        self.bytes_in += len(data)
+        if self._receiver is not None:
+            self._receiver(self, data, peer)
+
+
+class _DatagramProtocol(asyncio.DatagramProtocol):
+    def __init__(self, link: UdpLink) -> None:
+        self.link = link
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self.link._on_datagram(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP "port unreachable" after sending to a peer that is not listening (yet)
+        self.link._on_error(exc)
+
+
+class UdpLink(Link):
+    """``udpin`` listens and replies to every peer heard from recently;
+    ``udpout`` sends to one address and listens for its replies."""
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        super().__init__(endpoint)
+        self._transport: asyncio.DatagramTransport | None = None
+        self._peers: dict[Any, float] = {}
+        self._warned_unreachable = False
+
+    @property
+    def peers(self) -> list[Any]:
+        return list(self._peers)
+
+    async def start(self, receiver: Receiver) -> None:
+        await super().start(receiver)
+        loop = asyncio.get_running_loop()
+        address = (self.endpoint.host, self.endpoint.port)
+        try:
+            if self.endpoint.kind == "udpin":
+                transport, _ = await loop.create_datagram_endpoint(
+                    lambda: _DatagramProtocol(self), local_addr=address
+                )
+            else:
+                transport, _ = await loop.create_datagram_endpoint(
+                    lambda: _DatagramProtocol(self), remote_addr=address
+                )
+        except OSError as error:
+            raise LinkError(f"cannot open {self.endpoint}: {error.strerror or error}") from None
+        self._transport = transport  # type: ignore[assignment]
+        sock = transport.get_extra_info("socket")
+        if sock is not None:  # a burst of IMU packets must not overflow the kernel's buffer
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+
+    @property
+    def local_address(self) -> tuple[str, int] | None:
+        if self._transport is None:
+            return None
+        return self._transport.get_extra_info("sockname")  # type: ignore[no-any-return]
+
+    def _on_datagram(self, data: bytes, addr: Any) -> None:
+        if self.endpoint.kind == "udpin":
+            self._peers[addr] = time.monotonic()
+        self._deliver(data, addr)
+
+    def _on_error(self, exc: Exception) -> None:
+        if not self._warned_unreachable:
+            self._warned_unreachable = True
+            log.warning("%s: %s (is the peer listening?)", self.endpoint, exc)
+
+    def send(self, packet: bytes) -> None:
+        transport = self._transport
+        if transport is None or transport.is_closing():
+            self.packets_dropped += 1
+            return
+        if self.endpoint.kind == "udpout":
+            transport.sendto(packet)
+            self.bytes_out += len(packet)
+            return
+        if not self._peers:
+            self.packets_dropped += 1
+            return
+        now = time.monotonic()
+        for addr, seen in list(self._peers.items()):
+            if now - seen > UDP_PEER_TIMEOUT:
+                del self._peers[addr]
+                continue
+            transport.sendto(packet, addr)
+            self.bytes_out += len(packet)
+
+    def close(self) -> None:
+        if self._transport is not None:
+            self._transport.close()
+
+
+class TcpClientLink(Link):
+    """``tcp:HOST:PORT``: connects, and reconnects with back-off when the peer goes away."""
+
+    def __init__(self, endpoint: Endpoint, max_backoff: float = 5.0) -> None:
+        super().__init__(endpoint)
+        self.max_backoff = max_backoff
+        self._writer: asyncio.StreamWriter | None = None
+        self._task: asyncio.Task[None] | None = None
+        self.connected = asyncio.Event()
+
+    async def start(self, receiver: Receiver) -> None:
+        await super().start(receiver)
+        self._task = asyncio.create_task(self._run(), name=f"link {self.endpoint}")
+
+    async def _run(self) -> None:
+        backoff = 0.25
+        said_waiting = False
+        while True:
+            try:
+                reader, writer = await asyncio.open_connection(
+                    self.endpoint.host, self.endpoint.port
+                )
+            except OSError as error:
+                if not said_waiting:
+                    log.warning(
+                        "%s: %s; retrying",
+                        self.endpoint,
+                        error.strerror or error.__class__.__name__,
+                    )
+                    said_waiting = True
+                await asyncio.sleep(backoff)
+                backoff = min(2.0 * backoff, self.max_backoff)
+                continue
+            log.info("%s: connected", self.endpoint)
+            said_waiting = False
+            backoff = 0.25
+            self._writer = writer
+            self.connected.set()
+            peer = writer.get_extra_info("peername")
+            try:
+                while data := await reader.read(65536):
+                    self._deliver(data, peer)
+            except OSError:
+                pass
+            self.connected.clear()
+            self._writer = None
+            writer.close()
+            log.warning("%s: connection lost; reconnecting", self.endpoint)
+
+    def send(self, packet: bytes) -> None:
+        writer = self._writer
+        if writer is None or writer.is_closing():
+            self.packets_dropped += 1
+            return
+        writer.write(packet)
+        self.bytes_out += len(packet)
+
+    def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+        if self._writer is not None:
+            self._writer.close()
+
+
+class TcpServerLink(Link):
+    """``tcpin:HOST:PORT``: accepts any number of clients; sends to all of them."""
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        super().__init__(endpoint)
+        self._server: asyncio.base_events.Server | None = None
+        self._clients: set[asyncio.StreamWriter] = set()
+
+    async def start(self, receiver: Receiver) -> None:
+        await super().start(receiver)
+        try:
+            self._server = await asyncio.start_server(
+                self._serve, self.endpoint.host, self.endpoint.port
+            )
+        except OSError as error:
+            raise LinkError(
+                f"cannot listen on {self.endpoint}: {error.strerror or error}"
+            ) from None
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        peer = writer.get_extra_info("peername")
+        log.info("%s: client %s connected", self.endpoint, peer)
+        self._clients.add(writer)
+        try:
+            while data := await reader.read(65536):
+                self._deliver(data, peer)
+        except OSError:
+            pass
+        finally:
+            self._clients.discard(writer)
+            writer.close()
+            log.info("%s: client %s left", self.endpoint, peer)
+
+    def send(self, packet: bytes) -> None:
+        if not self._clients:
+            self.packets_dropped += 1
+            return
+        for writer in list(self._clients):
+            if not writer.is_closing():
+                writer.write(packet)
+                self.bytes_out += len(packet)
+
+    def close(self) -> None:
+        for writer in list(self._clients):
+            writer.close()
+        if self._server is not None:
+            self._server.close()
+
+
+class SerialLink(Link):
+    """A serial device (pyserial), read through the event loop's file-descriptor watch."""
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        super().__init__(endpoint)
+        self._port: Any = None
+
+    async def start(self, receiver: Receiver) -> None:
+        await super().start(receiver)
+        import serial  # pyserial: imported here so that network-only use never needs it
+
+        try:
+            self._port = serial.Serial(self.endpoint.device, self.endpoint.baud, timeout=0)
+        except (serial.SerialException, OSError) as error:
+            raise LinkError(f"cannot open {self.endpoint.device}: {error}") from None
+        asyncio.get_running_loop().add_reader(self._port.fileno(), self._on_readable)
+
+    def _on_readable(self) -> None:
+        try:
+            data = self._port.read(65536)
+        except Exception as error:  # the device went away (unplugged)
+            log.error("%s: %s", self.endpoint, error)
+            self.close()
+            return
+        if data:
+            self._deliver(data, self.endpoint.device)
+
+    def send(self, packet: bytes) -> None:
+        if self._port is None or not self._port.is_open:
+            self.packets_dropped += 1
+            return
+        try:
+            self._port.write(packet)
+            self.bytes_out += len(packet)
+        except Exception:
+            self.packets_dropped += 1
+
+    def close(self) -> None:
+        if self._port is not None and self._port.is_open:
+            with contextlib.suppress(Exception):
+                asyncio.get_running_loop().remove_reader(self._port.fileno())
+            self._port.close()
+
+
+def make_link(endpoint: Endpoint) -> Link:
+    if endpoint.kind in ("udpin", "udpout"):
+        return UdpLink(endpoint)
+    if endpoint.kind == "tcp":
+        return TcpClientLink(endpoint)
+    if endpoint.kind == "tcpin":
+        return TcpServerLink(endpoint)
+    return SerialLink(endpoint)

@@ -1,0 +1,215 @@
+"""IMU messages in, estimates out: MAVLink's units made SI, and mavest's own messages.
+
+Units come from the message definitions (pymavlink's generated
+``fieldunits_by_name``, i.e. the ``units`` attribute of the XML), never guessed
+from the values in a file: ArduPilot's RAW_IMU and SCALED_IMU* are in mG,
+mrad/s and mgauss; HIGHRES_IMU in m/s², rad/s and gauss.
+
+SI here means what the estimator takes: m/s², rad/s, seconds, and µT for the
+magnetic field (the unit of BROAD and of most magnetometer literature).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from mavest.estimator.config import STANDARD_GRAVITY
+
+MAVLink = mavlink2.MAVLink
+MAVLinkMessage = mavlink2.MAVLink_message
+
+# Factor from a MAVLink unit string to SI (µT for the magnetic field).
+UNIT_TO_SI: dict[str, float] = {
+    "mG": STANDARD_GRAVITY * 1e-3,  # milli standard gravity → m/s²
+    "m/s/s": 1.0,
+    "mrad/s": 1e-3,
+    "rad/s": 1.0,
+    "mgauss": 0.1,  # 1 gauss = 100 µT
+    "gauss": 100.0,
+    "us": 1e-6,
+    "ms": 1e-3,
+}
+
+IMU_MESSAGES: tuple[str, ...] = (
+    "HIGHRES_IMU",
+    "RAW_IMU",
+    "SCALED_IMU",
+    "SCALED_IMU2",
+    "SCALED_IMU3",
+)
+
+# SCALED_IMU2/3 are the second and third IMU: their instance is in the name.
+_INSTANCE_BY_NAME = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
+
+# HIGHRES_IMU.fields_updated: gyro and accelerometer must all be fresh to be a sample.
+_HIGHRES_INERTIAL_BITS = (
+    mavlink2.HIGHRES_IMU_UPDATED_XACC
+    | mavlink2.HIGHRES_IMU_UPDATED_YACC
+    | mavlink2.HIGHRES_IMU_UPDATED_ZACC
+    | mavlink2.HIGHRES_IMU_UPDATED_XGYRO
+    | mavlink2.HIGHRES_IMU_UPDATED_YGYRO
+    | mavlink2.HIGHRES_IMU_UPDATED_ZGYRO
+)
+_HIGHRES_MAG_BITS = (
+    mavlink2.HIGHRES_IMU_UPDATED_XMAG
+    | mavlink2.HIGHRES_IMU_UPDATED_YMAG
+    | mavlink2.HIGHRES_IMU_UPDATED_ZMAG
+)
+
+
+class UnitError(LookupError):
+    """A message definition whose unit mavest has no conversion for."""
+
+
+class ImuFormat(NamedTuple):
+    """How one IMU message's fields become SI (from its definition)."""
+
+    message: str
+    time_field: str
+    time_scale: float  # s per tick
+    accel_scale: float
+    gyro_scale: float
+    mag_scale: float
+
+
+def _format_of(message_class: type[MAVLinkMessage]) -> ImuFormat:
+    units: dict[str, str] = message_class.fieldunits_by_name
+    time_field = "time_usec" if "time_usec" in units else "time_boot_ms"
+
+    def scale(field: str) -> float:
+        unit = units.get(field)
+        if unit not in UNIT_TO_SI:
+            raise UnitError(f"{message_class.msgname}.{field}: no SI factor for unit {unit!r}")
+        return UNIT_TO_SI[unit]
+
+    for axis in "yz":  # the three axes of a sensor share a unit
+        assert scale(f"{axis}acc") == scale("xacc") and scale(f"{axis}gyro") == scale("xgyro")
+    return ImuFormat(
+        message_class.msgname,
+        time_field,
+        scale(time_field),
+        scale("xacc"),
+        scale("xgyro"),
+        scale("xmag"),
+    )
+
+
+IMU_FORMATS: dict[str, ImuFormat] = {
+    name: _format_of(mavlink2.mavlink_map[getattr(mavlink2, f"MAVLINK_MSG_ID_{name}")])
+    for name in IMU_MESSAGES
+}
+
+
+class StreamKey(NamedTuple):
+    """One IMU stream: who sent it, which message, which sensor instance."""
+
+    system: int
+    component: int
+    message: str
+    instance: int
+
+    def __str__(self) -> str:
+        return f"{self.message}[{self.instance}] from {self.system}/{self.component}"
+
+
+class ImuSample(NamedTuple):
+    """One IMU message in SI units, with its raw timestamp for the stream's clock."""
+
+    stream: StreamKey
+    ticks: int  # the raw timestamp field
+    tick: float  # s per tick
+    gyro: tuple[float, float, float]  # rad/s, FRD
+    accel: tuple[float, float, float]  # m/s², specific force, FRD
+    mag: tuple[float, float, float] | None  # µT, None when not sent
+
+
+def decode_imu(message: Any) -> ImuSample | None:
+    """The IMU sample in an IMU message; None for other messages or a HIGHRES_IMU
+    whose ``fields_updated`` says gyro or accelerometer are not fresh."""
+    name = message._type
+    fmt = IMU_FORMATS.get(name)
+    if fmt is None:
+        return None
+    header = message._header
+    mag_fresh = True
+    if name == "HIGHRES_IMU":
+        updated = message.fields_updated
+        if updated & _HIGHRES_INERTIAL_BITS != _HIGHRES_INERTIAL_BITS:
+            return None
+        mag_fresh = updated & _HIGHRES_MAG_BITS == _HIGHRES_MAG_BITS
+        instance = message.id
+    elif name == "RAW_IMU":
+        instance = message.id  # a MAVLink 2 extension: 0 when sent as MAVLink 1
+    else:
+        instance = _INSTANCE_BY_NAME[name]
+    a, g, m = fmt.accel_scale, fmt.gyro_scale, fmt.mag_scale
+    return ImuSample(
+        StreamKey(header.srcSystem, header.srcComponent, name, instance),
+        getattr(message, fmt.time_field),
+        fmt.time_scale,
+        (message.xgyro * g, message.ygyro * g, message.zgyro * g),
+        (message.xacc * a, message.yacc * a, message.zacc * a),
+        (message.xmag * m, message.ymag * m, message.zmag * m) if mag_fresh else None,
+    )
+
+
+def is_imu_message(name: str) -> bool:
+    return name in IMU_FORMATS
+
+
+class Encoder:
+    """mavest's outgoing messages, as MAVLink 2 packets from its own system and component."""
+
+    def __init__(self, system: int, component: int) -> None:
+        self.system = system
+        self.component = component
+        self._mav = MAVLink(None, srcSystem=system, srcComponent=component)
+
+    def attitude(self, time_boot_ms: int, euler: Any, rates: tuple[float, float, float]) -> bytes:
+        return self._mav.attitude_encode(
+            time_boot_ms, float(euler[0]), float(euler[1]), float(euler[2]), *rates
+        ).pack(self._mav)
+
+    def attitude_quaternion(
+        self, time_boot_ms: int, q: Any, rates: tuple[float, float, float]
+    ) -> bytes:
+        return self._mav.attitude_quaternion_encode(
+            time_boot_ms, float(q[0]), float(q[1]), float(q[2]), float(q[3]), *rates
+        ).pack(self._mav)
+
+    def heartbeat(self) -> bytes:
+        return self._mav.heartbeat_encode(
+            mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
+            mavlink2.MAV_AUTOPILOT_INVALID,
+            0,
+            0,
+            mavlink2.MAV_STATE_ACTIVE,
+        ).pack(self._mav)
+
+    def set_message_interval(
+        self, target_system: int, target_component: int, message: str, rate_hz: float
+    ) -> bytes:
+        """MAV_CMD_SET_MESSAGE_INTERVAL: the only command mavest ever sends."""
+        message_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{message}")
+        interval_us = 1e6 / rate_hz if rate_hz > 0 else -1.0
+        return self._mav.command_long_encode(
+            target_system,
+            target_component,
+            mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
+            0,
+            float(message_id),
+            float(interval_us),
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+        ).pack(self._mav)
+
+
+def time_boot_ms(t: float) -> int:
+    """The uint32 ``time_boot_ms`` of a vehicle time in seconds (wrapping as the field does)."""
+    return math.floor(t * 1000.0 + 1e-6) & 0xFFFFFFFF

@@ -1,0 +1,139 @@
+"""The service's settings: which IMU stream to follow, what to send back, as whom.
+
+A configuration file has three tables: ``[estimator]`` (the filter,
+:class:`~mavest.estimator.EstimatorConfig`), ``[input]`` and ``[output]``
+(this module). Every table and every key is optional; unknown keys are an error
+naming the known ones. Command-line options override the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mavest.estimator.config import ConfigError, EstimatorConfig, read_toml
+from mavest.mavlink.messages import IMU_MESSAGES
+
+MAV_COMP_ID_ONBOARD_COMPUTER = 191
+GROUND_STATION_SYSTEM = 255
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    """Which messages become estimates."""
+
+    # "auto": per vehicle, the best IMU message it sends (HIGHRES_IMU, then RAW_IMU,
+    # SCALED_IMU, SCALED_IMU2, SCALED_IMU3); or one message name; or "all" (an
+    # estimator for every IMU stream; ATTITUDE is sent for the best one only).
+    imu: str = "auto"
+    imu_instance: int = -1  # sensor instance (RAW_IMU/HIGHRES_IMU id); -1: the lowest seen
+    system: int = 0  # the vehicle's system id; 0: every vehicle heard
+    # Systems whose IMU messages are never estimated (ground stations, radios).
+    ignore_systems: tuple[int, ...] = (GROUND_STATION_SYSTEM,)
+    # Ask the flight controller for the IMU message at this rate (Hz) on a live link
+    # (MAV_CMD_SET_MESSAGE_INTERVAL); 0: leave its rate alone.
+    request_rate: float = 0.0
+    # Remove the centripetal acceleration of flight along the body x axis from the
+    # accelerometer, using VFR_HUD's airspeed: "auto" for fixed wings (HEARTBEAT
+    # type), "airspeed" for any vehicle sending VFR_HUD, "off".
+    centripetal_correction: str = "auto"
+    # Seconds after a stream's first sample before replay accuracy is scored (convergence).
+    settle_time: float = 10.0
+
+    def __post_init__(self) -> None:
+        choices = ("auto", "all", *IMU_MESSAGES)
+        _require(self.imu in choices, f"input.imu must be one of {', '.join(choices)}")
+        _require(-1 <= self.imu_instance <= 255, "input.imu_instance must be -1 or 0–255")
+        _require(0 <= self.system <= 255, "input.system must be 0–255")
+        _require(all(0 < s <= 255 for s in self.ignore_systems), "ignore_systems: ids 1–255")
+        _require(
+            math.isfinite(self.request_rate) and 0.0 <= self.request_rate <= 4000.0,
+            "input.request_rate must be 0–4000 Hz",
+        )
+        _require(self.settle_time >= 0.0, "input.settle_time must be ≥ 0")
+        _require(
+            self.centripetal_correction in ("auto", "airspeed", "off"),
+            "input.centripetal_correction must be auto, airspeed or off",
+        )
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """What mavest sends, and as whom."""
+
+    # mavest's own ids: system 0 takes the vehicle's system id (a companion computer
+    # on that vehicle); component 191 is MAV_COMP_ID_ONBOARD_COMPUTER.
+    system_id: int = 0
+    component_id: int = MAV_COMP_ID_ONBOARD_COMPUTER
+    attitude_rate: float = 0.0  # Hz; 0: one ATTITUDE per IMU sample
+    attitude_quaternion: bool = True  # also send ATTITUDE_QUATERNION
+    heartbeat_rate: float = 1.0  # Hz; 0: none
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.system_id <= 255, "output.system_id must be 0–255 (0: the vehicle's)")
+        _require(1 <= self.component_id <= 255, "output.component_id must be 1–255")
+        _require(
+            math.isfinite(self.attitude_rate) and self.attitude_rate >= 0.0,
+            "output.attitude_rate must be ≥ 0",
+        )
+        _require(self.heartbeat_rate >= 0.0, "output.heartbeat_rate must be ≥ 0")
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """Everything a configuration file sets."""
+
+    estimator: EstimatorConfig = dataclasses.field(default_factory=EstimatorConfig)
+    input: InputConfig = dataclasses.field(default_factory=InputConfig)
+    output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
+
+    @classmethod
+    def from_mapping(cls, document: dict[str, Any]) -> ServiceConfig:
+        unknown = sorted(set(document) - {"estimator", "input", "output"})
+        _require(
+            not unknown, f"unknown table(s) {', '.join(unknown)}: use estimator, input, output"
+        )
+        return cls(
+            EstimatorConfig.from_mapping(document.get("estimator", {})),
+            _table(InputConfig, document.get("input", {}), "input"),
+            _table(OutputConfig, document.get("output", {}), "output"),
+        )
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> ServiceConfig:
+        document = read_toml(path)
+        try:
+            return cls.from_mapping(document)
+        except ConfigError as error:
+            raise ConfigError(f"{path}: {error}") from None
+
+    def replace(self, **changes: dict[str, Any]) -> ServiceConfig:
+        """A copy with some keys of some tables changed, e.g. ``output={"system_id": 5}``."""
+        tables = {}
+        for table, values in changes.items():
+            tables[table] = dataclasses.replace(getattr(self, table), **values)
+        return dataclasses.replace(self, **tables)
+
+
+def _table(cls: type, values: dict[str, Any], name: str) -> Any:
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - known)
+    _require(
+        not unknown,
+        f"unknown {name} parameter(s): {', '.join(unknown)}; known: {', '.join(sorted(known))}",
+    )
+    converted = dict(values)
+    if "ignore_systems" in converted:
+        converted["ignore_systems"] = tuple(int(v) for v in converted["ignore_systems"])
+    try:
+        return cls(**converted)
+    except TypeError as error:
+        raise ConfigError(f"[{name}]: {error}") from None
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)

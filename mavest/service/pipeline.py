@@ -1,0 +1,524 @@
+"""The pipeline: MAVLink messages in → IMU streams → estimators → messages and records out.
+
+One :class:`Pipeline` serves the live service and the replay alike; what
+differs is where bytes come from and what "now" means (the wall clock, or the
+tlog's record time). Per vehicle stream (system, component, IMU message,
+instance) there is one estimator with its own clock, so two IMUs or two
+vehicles never mix. The vehicle's best stream is the one answered with
+ATTITUDE and ATTITUDE_QUATERNION, stamped with the vehicle's own
+``time_boot_ms``, from mavest's system and component id.
+
+Everything here is synchronous and quick (tens of µs per sample); the runners
+call it from the event loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from mavest.estimator import Estimator
+from mavest.estimator.layout import StepFlags
+from mavest.evaluation.online import EulerComparison
+from mavest.mavlink.clock import ClockEvent, StreamClock
+from mavest.mavlink.links import Link
+from mavest.mavlink.messages import (
+    IMU_MESSAGES,
+    Encoder,
+    ImuSample,
+    MAVLink,
+    StreamKey,
+    decode_imu,
+    mavlink2,
+    time_boot_ms,
+)
+from mavest.mavlink.tlog import TlogWriter
+from mavest.service.config import ServiceConfig
+
+log = logging.getLogger("mavest")
+
+# A sample beyond these is a broken sensor or a corrupt packet, never flight.
+MAX_GYRO = 50.0  # rad/s (≈ 2900°/s; MEMS gyros saturate at 2000°/s)
+MAX_ACCEL = 50.0 * 9.80665  # m/s²
+
+# Message preference for input.imu = "auto": SI floats first, then ArduPilot's primary IMU.
+_PREFERENCE = {name: rank for rank, name in enumerate(IMU_MESSAGES)}
+
+# The IMU message to ask each autopilot for (MAV_CMD_SET_MESSAGE_INTERVAL).
+_NATIVE_IMU = {
+    mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA: "RAW_IMU",
+    mavlink2.MAV_AUTOPILOT_PX4: "HIGHRES_IMU",
+}
+
+
+class EstimateSink(Protocol):
+    """Something that takes every estimate (the Rerun recorder, a test)."""
+
+    def on_estimate(self, stream: Stream, sample: ImuSample, estimate: Any) -> None: ...
+
+    def on_reference(self, stream: Stream, source: str, t: float, euler: tuple) -> None: ...
+
+
+@dataclass
+class StreamStats:
+    received: int = 0
+    estimated: int = 0
+    duplicates: int = 0
+    out_of_order: int = 0
+    off_timeline: int = 0  # timestamps far off the stream's timeline, not confirmed
+    rejected: int = 0  # values not finite or beyond any sensor's range
+    gaps: int = 0
+    realigned: int = 0
+    reboots: int = 0
+    wraps: int = 0
+    answered: int = 0  # ATTITUDE messages sent for this stream
+    first_t: float | None = None
+    last_t: float | None = None
+
+    @property
+    def span(self) -> float:
+        if self.first_t is None or self.last_t is None:
+            return 0.0
+        return self.last_t - self.first_t
+
+
+@dataclass
+class Stream:
+    key: StreamKey
+    estimator: Estimator
+    clock: StreamClock = field(default_factory=StreamClock)
+    stats: StreamStats = field(default_factory=StreamStats)
+    primary: bool = False
+    next_output: float = -math.inf
+    last_t: float = 0.0
+    vs_autopilot: EulerComparison = field(default_factory=EulerComparison)
+    vs_truth: EulerComparison = field(default_factory=EulerComparison)
+
+    @property
+    def rate(self) -> float:
+        period = self.clock.period
+        return 1.0 / period if period > 0.0 else 0.0
+
+
+@dataclass
+class Vehicle:
+    """What mavest knows of one (system, component) that sends IMU data."""
+
+    system: int
+    component: int
+    autopilot: int = mavlink2.MAV_AUTOPILOT_GENERIC
+    primary: StreamKey | None = None
+    last_t: float | None = None  # latest vehicle time seen, s since boot
+    interval_requests: int = 0
+    interval_asked: str = ""
+    fixed_wing: bool = False  # from HEARTBEAT.type
+    airspeed: float = math.nan  # m/s, from VFR_HUD
+    airspeed_t: float = -math.inf  # vehicle time it arrived at
+    airspeed_rate: float = 0.0  # m/s², its smoothed derivative
+
+
+class Pipeline:
+    """Decode, estimate, answer. Feed it bytes (:meth:`on_bytes`) or messages."""
+
+    def __init__(
+        self,
+        config: ServiceConfig,
+        links: list[Link] | None = None,
+        out_tlog: TlogWriter | None = None,
+        sinks: list[EstimateSink] | None = None,
+        now_us: Callable[[], int] | None = None,
+    ) -> None:
+        self.config = config
+        self.links = links if links is not None else []
+        self.out_tlog = out_tlog
+        self.sinks = sinks if sinks is not None else []
+        self.now_us = now_us if now_us is not None else (lambda: 0)
+        self.streams: dict[StreamKey, Stream] = {}
+        self.vehicles: dict[tuple[int, int], Vehicle] = {}
+        self._encoders: dict[int, Encoder] = {}
+        self._parsers: dict[tuple[int, Any], Any] = {}
+        self.messages_in = 0
+        self.bad_packets = 0
+        self.ignored = 0  # IMU messages from systems not followed (ground stations)
+        self.sent = 0
+        self._record_us = 0  # timestamp for records written now
+        self._not_followed: set[StreamKey] = set()
+
+    # ---------------------------------------------------------------- input
+
+    def on_bytes(self, link: Link, data: bytes, peer: Any) -> None:
+        """Bytes from a link: parse (one parser per peer) and handle each message."""
+        key = (id(link), peer)
+        parser = self._parsers.get(key)
+        if parser is None:
+            parser = MAVLink(None)
+            parser.robust_parsing = True
+            self._parsers[key] = parser
+        now = self.now_us()
+        try:
+            messages = parser.parse_buffer(data) or ()
+        except Exception:  # pymavlink raises on some malformed input even when robust
+            self.bad_packets += 1
+            return
+        for message in messages:
+            if message._type == "BAD_DATA":
+                self.bad_packets += 1
+                continue
+            if self.out_tlog is not None:
+                self.out_tlog.write(now, message.get_msgbuf())
+            self.on_message(message, now)
+
+    def on_message(self, message: Any, timestamp_us: int) -> None:
+        """One decoded message; ``timestamp_us`` is its record time (for files written)."""
+        self.messages_in += 1
+        self._record_us = timestamp_us
+        header = message._header
+        system, component = header.srcSystem, header.srcComponent
+        if self._is_ours(system, component):
+            return
+        name = message._type
+        if name in _IMU_NAMES:
+            self._on_imu(message, system, component)
+        elif name == "ATTITUDE":
+            self._on_reference(system, component, message, "autopilot", message.time_boot_ms * 1e-3)
+        elif name == "SIMSTATE":
+            vehicle = self.vehicles.get((system, 1)) or self._any_vehicle(system)
+            if vehicle is not None and vehicle.last_t is not None:
+                self._on_reference(
+                    vehicle.system, vehicle.component, message, "truth", vehicle.last_t
+                )
+        elif name == "VFR_HUD":
+            vehicle = self.vehicles.get((system, component))
+            if (
+                vehicle is not None
+                and vehicle.last_t is not None
+                and math.isfinite(message.airspeed)
+            ):
+                vehicle.airspeed = float(message.airspeed)
+                vehicle.airspeed_t = vehicle.last_t
+        elif name == "HEARTBEAT":
+            if system in self.config.input.ignore_systems:
+                return
+            if message.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:
+                vehicle = self.vehicles.get((system, component))
+                if vehicle is None:
+                    vehicle = self.vehicles[(system, component)] = Vehicle(system, component)
+                vehicle.autopilot = message.autopilot
+                vehicle.fixed_wing = message.type in _FIXED_WING_TYPES
+        elif name == "COMMAND_ACK" and message.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
+            result = mavlink2.enums["MAV_RESULT"].get(message.result)
+            log.info(
+                "%d/%d answered the message-interval request: %s",
+                system,
+                component,
+                result.name if result is not None else message.result,
+            )
+
+    def _is_ours(self, system: int, component: int) -> bool:
+        output = self.config.output
+        if component != output.component_id:
+            return False
+        return output.system_id in (0, system)
+
+    def _any_vehicle(self, system: int) -> Vehicle | None:
+        for vehicle in self.vehicles.values():
+            if vehicle.system == system and vehicle.primary is not None:
+                return vehicle
+        return None
+
+    def _follows(self, system: int) -> bool:
+        wanted = self.config.input.system
+        if wanted:
+            return system == wanted
+        return system not in self.config.input.ignore_systems
+
+    def _on_imu(self, message: Any, system: int, component: int) -> None:
+        if not self._follows(system):
+            self.ignored += 1
+            return
+        sample = decode_imu(message)
+        if sample is None:  # HIGHRES_IMU without fresh gyro and accelerometer
+            return
+        stream = self.streams.get(sample.stream)
+        if stream is None:
+            if sample.stream in self._not_followed:
+                return
+            stream = self._new_stream(sample.stream)
+            if stream is None:
+                self._not_followed.add(sample.stream)
+                return
+        self._estimate(stream, sample)
+
+    def _new_stream(self, key: StreamKey) -> Stream | None:
+        """A stream seen for the first time: follow it if the configuration selects it."""
+        wanted = self.config.input
+        vehicle = self.vehicles.get((key.system, key.component))
+        if vehicle is None:
+            vehicle = self.vehicles[(key.system, key.component)] = Vehicle(
+                key.system, key.component
+            )
+        if wanted.imu not in ("auto", "all") and key.message != wanted.imu:
+            return None
+        if wanted.imu_instance >= 0 and key.instance != wanted.imu_instance:
+            return None
+        better = vehicle.primary is None or (
+            (_PREFERENCE[key.message], key.instance)
+            < (_PREFERENCE[vehicle.primary.message], vehicle.primary.instance)
+        )
+        if not better and wanted.imu != "all":
+            return None
+        stream = Stream(
+            key,
+            Estimator(self.config.estimator),
+            vs_autopilot=EulerComparison(wanted.settle_time),
+            vs_truth=EulerComparison(wanted.settle_time),
+        )
+        self.streams[key] = stream
+        if better:
+            if vehicle.primary is not None:
+                self.streams[vehicle.primary].primary = False
+                log.info("%s: following %s instead of %s", _who(vehicle), key, vehicle.primary)
+                if wanted.imu != "all":
+                    del self.streams[vehicle.primary]
+                    self._not_followed.add(vehicle.primary)
+            else:
+                log.info("%s: estimating from %s", _who(vehicle), key)
+            vehicle.primary = key
+            stream.primary = True
+        return stream
+
+    # ---------------------------------------------------------------- estimation
+
+    def _estimate(self, stream: Stream, sample: ImuSample) -> None:
+        stats = stream.stats
+        stats.received += 1
+        gyro, accel = sample.gyro, sample.accel
+        if not _plausible(gyro, MAX_GYRO) or not _plausible(accel, MAX_ACCEL):
+            stats.rejected += 1
+            return
+        reading = stream.clock.read(sample.ticks, sample.tick)
+        event = reading.event
+        if not event.used:
+            if event is ClockEvent.DUPLICATE:
+                stats.duplicates += 1
+            elif event is ClockEvent.OUT_OF_ORDER:
+                stats.out_of_order += 1
+            else:
+                stats.off_timeline += 1
+            return
+        t = reading.t
+        if event is ClockEvent.REBOOT:
+            stats.reboots += 1
+            log.warning(
+                "%s: time went back from %.3f s to %.3f s (a reboot?): re-initialising",
+                stream.key,
+                stream.last_t,
+                t,
+            )
+            stream.estimator.reset()
+            stream.next_output = -math.inf
+            stream.vs_autopilot.restart()
+            stream.vs_truth.restart()
+        elif event is ClockEvent.WRAPPED:
+            stats.wraps += 1
+            log.info("%s: the 32-bit timestamp wrapped", stream.key)
+        elif event is ClockEvent.GAP:
+            stats.gaps += 1
+        vehicle = self.vehicles[(sample.stream.system, sample.stream.component)]
+        if self._corrects_centripetal(vehicle, t):
+            accel = _without_centripetal(
+                accel, gyro, stream.estimator.bias, vehicle.airspeed, vehicle.airspeed_rate
+            )
+        estimate = stream.estimator.update(t, gyro, accel)
+        flags = estimate.flags
+        if flags & StepFlags.SKIPPED:
+            stats.rejected += 1
+            return
+        if flags & StepFlags.GAP_REALIGNED:
+            stats.realigned += 1
+            log.warning("%s: no samples for %.2f s: attitude re-aligned", stream.key, reading.dt)
+        stats.estimated += 1
+        if stats.first_t is None:
+            stats.first_t = t
+        stats.last_t = t
+        stream.last_t = t
+        vehicle.last_t = t
+        euler = estimate.euler
+        euler_tuple = (float(euler[0]), float(euler[1]), float(euler[2]))
+        stream.vs_autopilot.add_estimate(t, euler_tuple)
+        stream.vs_truth.add_estimate(t, euler_tuple)
+        for sink in self.sinks:
+            sink.on_estimate(stream, sample, estimate)
+        if stream.primary and t >= stream.next_output:
+            self._answer(stream, t, estimate, euler_tuple, gyro)
+
+    def _corrects_centripetal(self, vehicle: Vehicle, t: float) -> bool:
+        mode = self.config.input.centripetal_correction
+        if mode == "off" or (mode == "auto" and not vehicle.fixed_wing):
+            return False
+        return 0.0 <= t - vehicle.airspeed_t <= AIRSPEED_MAX_AGE
+
+    def _answer(
+        self,
+        stream: Stream,
+        t: float,
+        estimate: Any,
+        euler: tuple[float, float, float],
+        gyro: tuple[float, float, float],
+    ) -> None:
+        output = self.config.output
+        if output.attitude_rate > 0.0:
+            period = 1.0 / output.attitude_rate
+            # keep the grid; after a pause, restart it rather than burst to catch up
+            stream.next_output = max(stream.next_output + period, t + 0.5 * period)
+        bias = estimate.bias
+        rates = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
+        encoder = self._encoder(stream.key.system)
+        stamp = time_boot_ms(t)
+        self.emit(encoder.attitude(stamp, euler, rates))
+        if output.attitude_quaternion:
+            self.emit(encoder.attitude_quaternion(stamp, estimate.q, rates))
+        stream.stats.answered += 1
+
+    def _on_reference(
+        self, system: int, component: int, message: Any, source: str, t: float
+    ) -> None:
+        vehicle = self.vehicles.get((system, component))
+        if vehicle is None or vehicle.primary is None:
+            return
+        stream = self.streams.get(vehicle.primary)
+        if stream is None:
+            return
+        euler = (float(message.roll), float(message.pitch), float(message.yaw))
+        if source == "truth":
+            stream.vs_truth.add_reference(t, euler)
+        else:
+            if t < stream.last_t - 60.0:  # the autopilot's clock restarted before the IMU's
+                return
+            stream.vs_autopilot.add_reference(t, euler)
+        for sink in self.sinks:
+            sink.on_reference(stream, source, t, euler)
+
+    # ---------------------------------------------------------------- output
+
+    def _encoder(self, vehicle_system: int) -> Encoder:
+        system = self.config.output.system_id or vehicle_system
+        encoder = self._encoders.get(system)
+        if encoder is None:
+            encoder = self._encoders[system] = Encoder(system, self.config.output.component_id)
+        return encoder
+
+    def emit(self, packet: bytes) -> None:
+        """Send a packet of ours on every link and record it."""
+        self.sent += 1
+        for link in self.links:
+            link.send(packet)
+        if self.out_tlog is not None:
+            self.out_tlog.write(self._record_us, packet)
+
+    def heartbeat(self) -> None:
+        """One HEARTBEAT per system mavest speaks as (none until a vehicle is heard)."""
+        systems = {v.system for v in self.vehicles.values() if v.primary is not None}
+        if self.config.output.system_id:
+            systems = {self.config.output.system_id} if systems else set()
+        for system in sorted(systems):
+            self.emit(self._encoder(system).heartbeat())
+
+    def request_intervals(self) -> None:
+        """Ask every vehicle for its IMU message at ``input.request_rate`` until it comes.
+
+        Called every few seconds on a live link; asks at most five times per vehicle,
+        and stops once the stream arrives within 10 % of the asked rate.
+        """
+        rate = self.config.input.request_rate
+        if rate <= 0.0:
+            return
+        for vehicle in self.vehicles.values():
+            if vehicle.system in self.config.input.ignore_systems:
+                continue
+            message = self.config.input.imu
+            if message in ("auto", "all"):
+                message = _NATIVE_IMU.get(vehicle.autopilot, "RAW_IMU")
+            stream = self.streams.get(vehicle.primary) if vehicle.primary else None
+            if stream is not None and stream.key.message == message and stream.rate > 0.9 * rate:
+                continue
+            if vehicle.interval_requests >= 5:
+                continue
+            vehicle.interval_requests += 1
+            vehicle.interval_asked = message
+            log.info("asking %s for %s at %g Hz", _who(vehicle), message, rate)
+            self.emit(
+                self._encoder(vehicle.system).set_message_interval(
+                    vehicle.system, vehicle.component, message, rate
+                )
+            )
+
+
+_IMU_NAMES = frozenset(IMU_MESSAGES)
+
+AIRSPEED_MAX_AGE = 2.0  # s: an older VFR_HUD airspeed is not used
+_FIXED_WING_TYPES = frozenset(
+    getattr(mavlink2, name)
+    for name in (
+        "MAV_TYPE_FIXED_WING",
+        "MAV_TYPE_VTOL_TAILSITTER_DUOROTOR",
+        "MAV_TYPE_VTOL_TAILSITTER_QUADROTOR",
+        "MAV_TYPE_VTOL_TILTROTOR",
+        "MAV_TYPE_VTOL_FIXEDROTOR",
+        "MAV_TYPE_VTOL_TAILSITTER",
+        "MAV_TYPE_VTOL_TILTWING",
+        "MAV_TYPE_GLIDER",
+    )
+    if hasattr(mavlink2, name)
+)
+
+
+AIRSPEED_RATE_TIME = 1.0  # s: smoothing of the airspeed's derivative
+
+
+def _take_airspeed(vehicle: Vehicle, airspeed: float, t: float) -> None:
+    """A VFR_HUD airspeed: keep it, and the smoothed rate it changes at."""
+    if not (math.isfinite(airspeed) and 0.0 <= airspeed < 400.0):
+        return
+    dt = t - vehicle.airspeed_t
+    if 0.0 < dt <= AIRSPEED_MAX_AGE:
+        w = min(dt / AIRSPEED_RATE_TIME, 1.0)
+        rate = (airspeed - vehicle.airspeed) / dt
+        vehicle.airspeed_rate += w * (rate - vehicle.airspeed_rate)
+    elif dt > AIRSPEED_MAX_AGE:
+        vehicle.airspeed_rate = 0.0
+    if dt != 0.0:
+        vehicle.airspeed = airspeed
+        vehicle.airspeed_t = t
+
+
+def _without_centripetal(
+    accel: tuple[float, float, float],
+    gyro: tuple[float, float, float],
+    bias: Any,
+    airspeed: float,
+    airspeed_rate: float,
+) -> tuple[float, float, float]:
+    """The specific force less the acceleration of flight along the body x axis.
+
+    A fixed wing in a steady coordinated turn feels its load factor straight
+    down the body z axis: the accelerometer alone says "level" at any bank
+    (22° RMS tilt error on the JSBSim flight, for VQF as for mavest). With
+    v ≈ (V, 0, 0) in the body frame, a = v̇ + ω × v ≈ (V̇, ω_z V, −ω_y V);
+    removing it leaves gravity (ArduPilot's DCM does the same with its airspeed).
+    """
+    wy = gyro[1] - bias[1]
+    wz = gyro[2] - bias[2]
+    return (accel[0] - airspeed_rate, accel[1] - wz * airspeed, accel[2] + wy * airspeed)
+
+
+def _plausible(v: tuple[float, float, float], limit: float) -> bool:
+    # written out: a NaN fails every comparison, so it is caught here too
+    return -limit <= v[0] <= limit and -limit <= v[1] <= limit and -limit <= v[2] <= limit
+
+
+def _who(vehicle: Vehicle) -> str:
+    return f"vehicle {vehicle.system}/{vehicle.component}"

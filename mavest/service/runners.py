@@ -1,0 +1,337 @@
+"""Running the pipeline: live on MAVLink links, or replaying a tlog.
+
+Both are asyncio coroutines. Live, bytes arrive through the links' protocol
+callbacks and timers send HEARTBEAT and the message-interval request; nothing
+waits on a socket outside the event loop. Replay reads the file's records and
+yields to the loop every few hundred records, so a signal stops it at once,
+and paces itself by the records' times when asked to (``speed``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+from mavest.estimator import Estimator
+from mavest.mavlink.links import Link, make_link, parse_endpoint
+from mavest.mavlink.messages import IMU_MESSAGES
+from mavest.mavlink.tlog import TlogReader, TlogWriter, message_ids
+from mavest.service.config import ServiceConfig
+from mavest.service.pipeline import Pipeline, Stream
+from mavest.service.signals import stop_on_signals
+from mavest.viz.recorder import RerunRecorder
+
+log = logging.getLogger("mavest")
+
+# What replay decodes; every other record is copied to the output tlog undecoded.
+REPLAY_MESSAGES = message_ids([*IMU_MESSAGES, "ATTITUDE", "SIMSTATE", "HEARTBEAT", "VFR_HUD"])
+
+
+@dataclass
+class Outputs:
+    """Files a run writes besides the MAVLink it sends."""
+
+    tlog: Path | None = None
+    rrd: Path | None = None
+
+
+@dataclass
+class RunReport:
+    """What a run did: enough for the summary and for tests."""
+
+    pipeline: Pipeline
+    elapsed: float  # wall-clock seconds
+    records: int = 0
+    source: str = ""
+    interrupted: bool = False
+    bad_records: int = 0
+    skipped_bytes: int = 0
+    outputs: Outputs = field(default_factory=Outputs)
+
+    @property
+    def streams(self) -> list[Stream]:
+        return list(self.pipeline.streams.values())
+
+    def summary(self) -> str:
+        return format_summary(self)
+
+
+def _open_outputs(outputs: Outputs) -> tuple[TlogWriter | None, RerunRecorder | None]:
+    tlog = TlogWriter(outputs.tlog) if outputs.tlog is not None else None
+    recorder = RerunRecorder(outputs.rrd) if outputs.rrd is not None else None
+    return tlog, recorder
+
+
+def _close_outputs(tlog: TlogWriter | None, recorder: RerunRecorder | None) -> None:
+    if tlog is not None:
+        tlog.close()
+    if recorder is not None:
+        recorder.close()
+
+
+class _Progress:
+    """A one-line progress bar on a terminal (nothing when the output is not one)."""
+
+    def __init__(self, total: int, stream: TextIO = sys.stderr, enabled: bool | None = None):
+        self.total = max(total, 1)
+        self.stream = stream
+        self.enabled = stream.isatty() if enabled is None else enabled
+        self._last = 0.0
+        self._start = time.perf_counter()
+
+    def update(self, done: int, samples: int) -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        if now - self._last < 0.2:
+            return
+        self._last = now
+        fraction = min(done / self.total, 1.0)
+        width = 30
+        filled = round(width * fraction)
+        rate = samples / max(now - self._start, 1e-9)
+        self.stream.write(
+            f"\r  [{'#' * filled}{'.' * (width - filled)}] {100 * fraction:5.1f}%  "
+            f"{samples} samples, {rate / 1000:.1f} k/s "
+        )
+        self.stream.flush()
+
+    def finish(self) -> None:
+        if self.enabled:
+            self.stream.write("\r" + " " * 72 + "\r")
+            self.stream.flush()
+
+
+async def replay(
+    path: str | Path,
+    config: ServiceConfig,
+    outputs: Outputs | None = None,
+    speed: float | None = None,
+    progress: bool | None = None,
+    stop: asyncio.Event | None = None,
+) -> RunReport:
+    """Replay a tlog through the pipeline (:class:`~mavest.mavlink.tlog.TlogError` if unusable)."""
+    outputs = outputs or Outputs()
+    reader = TlogReader.open(path, REPLAY_MESSAGES)
+    tlog, recorder = _open_outputs(outputs)
+    pipeline = Pipeline(config, out_tlog=tlog, sinks=[recorder] if recorder else [])
+    bar = _Progress(reader.size, enabled=progress)
+    report = RunReport(pipeline, 0.0, source=str(path), outputs=outputs)
+    heartbeat_period = 1.0 / config.output.heartbeat_rate if config.output.heartbeat_rate else 0.0
+    next_heartbeat_us = 0
+    first_us: int | None = None
+    start = time.perf_counter()
+    records = 0
+    try:
+        for record in reader:
+            records += 1
+            stamp = record.timestamp_us
+            if tlog is not None:
+                tlog.write(stamp, record.packet)
+            if record.message is not None:
+                pipeline.on_message(record.message, stamp)
+            if heartbeat_period and stamp >= next_heartbeat_us and pipeline.vehicles:
+                pipeline.heartbeat()
+                next_heartbeat_us = stamp + int(heartbeat_period * 1e6)
+            if records % 256 == 0:
+                bar.update(reader.position, _estimated(pipeline))
+                if speed:
+                    if first_us is None:
+                        first_us = stamp
+                    ahead = (stamp - first_us) * 1e-6 / speed - (time.perf_counter() - start)
+                    await asyncio.sleep(max(ahead, 0.0))
+                else:
+                    await asyncio.sleep(0)
+                if stop is not None and stop.is_set():
+                    report.interrupted = True
+                    break
+    finally:
+        bar.finish()
+        _close_outputs(tlog, recorder)
+    report.elapsed = time.perf_counter() - start
+    report.records = records
+    report.bad_records = reader.stats.bad_crc
+    report.skipped_bytes = reader.stats.skipped_bytes + reader.stats.truncated_bytes
+    return report
+
+
+def _estimated(pipeline: Pipeline) -> int:
+    return sum(s.stats.estimated for s in pipeline.streams.values())
+
+
+async def run_live(
+    connection: str,
+    config: ServiceConfig,
+    out_connections: tuple[str, ...] = (),
+    outputs: Outputs | None = None,
+    baud: int = 115200,
+    stop: asyncio.Event | None = None,
+    status_period: float = 10.0,
+    ready: asyncio.Event | None = None,
+) -> RunReport:
+    """Serve until ``stop`` is set (or SIGINT/SIGTERM when ``stop`` is not given)."""
+    outputs = outputs or Outputs()
+    endpoints = [parse_endpoint(connection, baud)] + [
+        parse_endpoint(c, baud) for c in out_connections
+    ]
+    # Compile (or load) the filter before listening: the first IMU packet must not wait for it.
+    Estimator(config.estimator)
+    tlog, recorder = _open_outputs(outputs)
+    links: list[Link] = [make_link(e) for e in endpoints]
+    pipeline = Pipeline(
+        config,
+        links=links,
+        out_tlog=tlog,
+        sinks=[recorder] if recorder else [],
+        now_us=lambda: time.time_ns() // 1000,
+    )
+    report = RunReport(pipeline, 0.0, source=connection, outputs=outputs)
+    tasks: list[asyncio.Task[None]] = []
+    start = time.perf_counter()
+    with stop_on_signals(stop) as stopping:
+        try:
+            await _serve(
+                pipeline, links, config, tlog, recorder, status_period, ready, stopping, tasks
+            )
+        finally:
+            for task in tasks:
+                task.cancel()
+            for task in tasks:
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+            for link in links:
+                link.close()
+            _close_outputs(tlog, recorder)
+    report.elapsed = time.perf_counter() - start
+    report.records = pipeline.messages_in
+    report.bad_records = pipeline.bad_packets
+    return report
+
+
+async def _serve(
+    pipeline: Pipeline,
+    links: list[Link],
+    config: ServiceConfig,
+    tlog: TlogWriter | None,
+    recorder: RerunRecorder | None,
+    status_period: float,
+    ready: asyncio.Event | None,
+    stop: asyncio.Event,
+    tasks: list[asyncio.Task[None]],
+) -> None:
+    """Open the links, start the timers, wait for the stop (cleanup is the caller's)."""
+    for link in links:
+        await link.start(pipeline.on_bytes)
+    log.info(
+        "listening on %s%s",
+        links[0],
+        "".join(f", sending to {link}" for link in links[1:]),
+    )
+    if ready is not None:
+        ready.set()
+    if config.output.heartbeat_rate > 0:
+        tasks.append(
+            asyncio.create_task(_every(1.0 / config.output.heartbeat_rate, pipeline.heartbeat))
+        )
+    tasks.append(asyncio.create_task(_every(2.0, pipeline.request_intervals)))
+    if status_period > 0:
+        tasks.append(asyncio.create_task(_every(status_period, lambda: _status(pipeline))))
+    if tlog is not None or recorder is not None:
+        tasks.append(asyncio.create_task(_every(1.0, lambda: _flush(tlog, recorder))))
+    await stop.wait()
+
+
+async def _every(period: float, action: object) -> None:
+    while True:
+        await asyncio.sleep(period)
+        action()  # type: ignore[operator]
+
+
+def _flush(tlog: TlogWriter | None, recorder: RerunRecorder | None) -> None:
+    if tlog is not None:
+        tlog.flush()
+    if recorder is not None:
+        recorder.flush()
+
+
+def _status(pipeline: Pipeline) -> None:
+    for stream in pipeline.streams.values():
+        asked = ""
+        vehicle = pipeline.vehicles.get((stream.key.system, stream.key.component))
+        if vehicle is not None and vehicle.interval_asked == stream.key.message:
+            asked = f" (asked {pipeline.config.input.request_rate:g} Hz)"
+        stats = stream.stats
+        log.info(
+            "%s: %.1f Hz%s, %d estimated, %d answered, %d rejected",
+            stream.key,
+            stream.rate,
+            asked,
+            stats.estimated,
+            stats.answered,
+            stats.rejected + stats.duplicates + stats.out_of_order + stats.off_timeline,
+        )
+
+
+def format_summary(report: RunReport) -> str:
+    """The one-screen summary printed at the end of a run."""
+    pipeline = report.pipeline
+    lines = []
+    samples = _estimated(pipeline)
+    rate = samples / report.elapsed if report.elapsed > 0 else math.inf
+    status = " (interrupted)" if report.interrupted else ""
+    lines.append(
+        f"{report.source}{status}: {report.records} messages in {report.elapsed:.2f} s, "
+        f"{samples} IMU samples estimated ({rate / 1000:.1f} k samples/s)"
+    )
+    if report.bad_records or report.skipped_bytes:
+        lines.append(
+            f"  damaged input: {report.bad_records} bad packets, "
+            f"{report.skipped_bytes} bytes skipped"
+        )
+    if not pipeline.streams:
+        lines.append(
+            "  no IMU stream found (RAW_IMU, SCALED_IMU/2/3 or HIGHRES_IMU from a vehicle)"
+        )
+    for stream in pipeline.streams.values():
+        stats = stream.stats
+        role = " → ATTITUDE" if stream.primary else ""
+        lines.append(
+            f"  {stream.key}{role}: {stats.estimated} of {stats.received} samples over "
+            f"{stats.span:.1f} s at {stream.rate:.1f} Hz"
+        )
+        problems = [
+            f"{value} {name}"
+            for name, value in (
+                ("rejected", stats.rejected),
+                ("duplicates", stats.duplicates),
+                ("out of order", stats.out_of_order),
+                ("off the timeline", stats.off_timeline),
+                ("gaps", stats.gaps),
+                ("re-aligned", stats.realigned),
+                ("reboots", stats.reboots),
+                ("wraps", stats.wraps),
+            )
+            if value
+        ]
+        lines.append("    " + (", ".join(problems) if problems else "no gaps, nothing rejected"))
+        settle = pipeline.config.input.settle_time
+        for name, comparison in (
+            ("truth (SIMSTATE)", stream.vs_truth),
+            ("autopilot ATTITUDE", stream.vs_autopilot),
+        ):
+            result = comparison.result()
+            if result.count:
+                lines.append(f"    vs {name} after {settle:g} s: {result.describe()}")
+    if pipeline.sent:
+        lines.append(f"  sent {pipeline.sent} messages")
+    for label, path in (("tlog", report.outputs.tlog), ("rrd", report.outputs.rrd)):
+        if path is not None:
+            lines.append(f"  wrote {path} ({label})")
+    return "\n".join(lines)

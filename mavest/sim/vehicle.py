@@ -1,0 +1,474 @@
+"""The simulated vehicle: a JSBSim flight speaking MAVLink like a flight controller.
+
+Two forms. :func:`write_flight_tlog` writes a flight to a tlog as fast as it
+can: HEARTBEAT at 1 Hz, the IMU message per sample and SIMSTATE (the flight
+model's true attitude, as ArduPilot's simulator sends it) right after each.
+:func:`stream_flight` sends the same in real time over a MAVLink link,
+honours MAV_CMD_SET_MESSAGE_INTERVAL for its IMU message, and scores every
+ATTITUDE that comes back against the truth of the sample it answers (matched
+by ``time_boot_ms``): answered fraction, roll/pitch error, latency.
+
+The IMU is what the autopilots send: ArduPilot's RAW_IMU quantised to integer
+mG, mrad/s and mgauss, or PX4's HIGHRES_IMU in float SI; each with white noise
+and a turn-on bias (:class:`~mavest.sim.flight.ImuErrors`). Streaming, the
+flight model runs at 1 kHz and each IMU sample is the mean of the model
+samples since the last one, the way an autopilot filters before it decimates.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mavest import so3
+from mavest.mavlink.links import Link, make_link, parse_endpoint
+from mavest.mavlink.messages import IMU_FORMATS, MAVLink, mavlink2
+from mavest.mavlink.tlog import TlogWriter
+from mavest.service.signals import stop_on_signals
+from mavest.sim.flight import Flight, FlightModel, ImuErrors, NoisyImu
+
+log = logging.getLogger("mavest")
+
+# The Earth's field near the flight's start (47.4° N, 8.5° E; WMM 2025, rounded), NED, µT.
+EARTH_FIELD_NED = np.array([21.5, 0.7, 43.0])
+BOOT_OFFSET = 20.0  # s the flight controller had been up when the flight starts
+TLOG_EPOCH_US = 1_767_225_600_000_000  # 2026-01-01 00:00 UTC: files are reproducible
+STREAM_MODEL_RATE = 1000.0  # Hz: the streaming vehicle's flight model
+HUD_PERIOD = 0.1  # s between VFR_HUD messages (airspeed)
+
+
+@dataclass(frozen=True)
+class Autopilot:
+    """How a flight controller of this kind identifies itself and sends its IMU."""
+
+    name: str
+    imu_message: str
+    autopilot: int  # MAV_AUTOPILOT_*
+    system: int = 1
+    component: int = 1
+
+
+AUTOPILOTS = {
+    "ardupilot": Autopilot("ardupilot", "RAW_IMU", mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA),
+    "px4": Autopilot("px4", "HIGHRES_IMU", mavlink2.MAV_AUTOPILOT_PX4),
+}
+
+
+class VehicleEncoder:
+    """The vehicle's packets: IMU in the autopilot's units, SIMSTATE, HEARTBEAT, COMMAND_ACK."""
+
+    def __init__(self, autopilot: Autopilot) -> None:
+        self.autopilot = autopilot
+        self._mav = MAVLink(None, srcSystem=autopilot.system, srcComponent=autopilot.component)
+        self._format = IMU_FORMATS[autopilot.imu_message]
+
+    def imu(self, t_boot: float, gyro: np.ndarray, accel: np.ndarray, mag: np.ndarray) -> bytes:
+        fmt = self._format
+        if fmt.message == "RAW_IMU":  # int16 fields: round and saturate, as the firmware does
+            a = _int16(accel / fmt.accel_scale)
+            g = _int16(gyro / fmt.gyro_scale)
+            m = _int16(mag / fmt.mag_scale)
+            return self._mav.raw_imu_encode(round(t_boot * 1e6), *a, *g, *m, 0, 3500).pack(
+                self._mav
+            )
+        a = accel / fmt.accel_scale
+        g = gyro / fmt.gyro_scale
+        m = mag / fmt.mag_scale
+        return self._mav.highres_imu_encode(
+            round(t_boot * 1e6),
+            *map(float, a),
+            *map(float, g),
+            *map(float, m),
+            1013.25,
+            0.0,
+            400.0,
+            35.0,
+            0x1FFF,
+            0,
+        ).pack(self._mav)
+
+    def simstate(
+        self, euler: np.ndarray, accel: np.ndarray, gyro: np.ndarray, lat: float, lon: float
+    ) -> bytes:
+        return self._mav.simstate_encode(
+            *map(float, euler),
+            *map(float, accel),
+            *map(float, gyro),
+            round(lat * 1e7),
+            round(lon * 1e7),
+        ).pack(self._mav)
+
+    def vfr_hud(self, flight: Flight, i: int) -> bytes:
+        """Airspeed and the rest of the head-up display, as autopilots send it (~10 Hz)."""
+        velocity = flight.velocity[i]
+        heading = math.degrees(so3.euler_zyx_from_quat(flight.q_true[i])[2]) % 360.0
+        return self._mav.vfr_hud_encode(
+            float(flight.airspeed[i]),
+            float(math.hypot(velocity[0], velocity[1])),
+            round(heading) % 360,
+            60,
+            float(flight.altitude[i]),
+            float(-velocity[2]),
+        ).pack(self._mav)
+
+    def heartbeat(self) -> bytes:
+        return self._mav.heartbeat_encode(
+            mavlink2.MAV_TYPE_FIXED_WING,
+            self.autopilot.autopilot,
+            mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            0,
+            mavlink2.MAV_STATE_ACTIVE,
+        ).pack(self._mav)
+
+    def command_ack(
+        self, command: int, result: int, target_system: int, target_component: int
+    ) -> bytes:
+        return self._mav.command_ack_encode(
+            command, result, 0, 0, target_system, target_component
+        ).pack(self._mav)
+
+
+def _int16(values: np.ndarray) -> list[int]:
+    return [int(v) for v in np.clip(np.rint(values), -32768, 32767)]
+
+
+def _magnetometer(q_true: np.ndarray) -> np.ndarray:
+    """The Earth's field in the body frame (µT) for (N, 4) attitudes."""
+    field_body = np.empty((len(q_true), 3))
+    for i, q in enumerate(q_true):
+        field_body[i] = so3.matrix_from_quat(q).T @ EARTH_FIELD_NED
+    return field_body
+
+
+# --------------------------------------------------------------------------
+# a flight written to a tlog
+# --------------------------------------------------------------------------
+
+
+def write_flight_tlog(
+    path: str | Path,
+    seconds: float,
+    rate: float,
+    autopilot: Autopilot = AUTOPILOTS["ardupilot"],
+    seed: int = 1,
+    errors: ImuErrors | None = None,
+) -> str:
+    """Write a simulated flight to ``path``; return a line describing it."""
+    model = FlightModel(rate, seed)
+    imu = NoisyImu(errors, rate, seed)
+    encoder = VehicleEncoder(autopilot)
+    total = round(seconds * rate) + 1
+    chunk = max(1, round(10.0 * rate))
+    next_heartbeat = 0.0
+    next_hud = 0.0
+    samples = 0
+    with TlogWriter(path) as tlog:
+        while samples < total:
+            flight = model.advance(min(chunk, total - samples))
+            gyro, accel = imu.measure(flight.gyro, flight.accel)
+            euler = so3.euler_zyx_from_quats(flight.q_true)
+            mag = _magnetometer(flight.q_true)
+            for i in range(len(flight)):
+                t = float(flight.t[i])
+                stamp = TLOG_EPOCH_US + round(t * 1e6)
+                if t >= next_heartbeat:
+                    tlog.write(stamp, encoder.heartbeat())
+                    next_heartbeat += 1.0
+                tlog.write(stamp, encoder.imu(t + BOOT_OFFSET, gyro[i], accel[i], mag[i]))
+                tlog.write(
+                    stamp,
+                    encoder.simstate(
+                        euler[i],
+                        flight.accel[i],
+                        flight.gyro[i],
+                        flight.latitude[i],
+                        flight.longitude[i],
+                    ),
+                )
+                if t >= next_hud:
+                    tlog.write(stamp, encoder.vfr_hud(flight, i))
+                    next_hud += HUD_PERIOD
+            samples += len(flight)
+    return (
+        f"wrote {path}: {samples} {autopilot.imu_message} at {rate:g} Hz over {seconds:g} s, "
+        f"with SIMSTATE (truth) per sample and VFR_HUD at {1 / HUD_PERIOD:g} Hz; gyro bias "
+        f"{', '.join(f'{math.degrees(b):+.2f}' for b in imu.gyro_bias)} °/s"
+    )
+
+
+# --------------------------------------------------------------------------
+# a vehicle streaming in real time
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class VehicleReport:
+    """What the streaming vehicle saw of the estimates sent back to it."""
+
+    sent: int = 0
+    answered: int = 0  # IMU samples answered by at least one ATTITUDE
+    duplicates: int = 0  # ATTITUDE for a sample already answered
+    unmatched: int = 0  # ATTITUDE for no sample sent (or too old to remember)
+    roll_rms: float = math.nan  # deg, after settle_time
+    pitch_rms: float = math.nan
+    scored: int = 0
+    latency_p50_ms: float = math.nan
+    latency_p99_ms: float = math.nan
+    latency_max_ms: float = math.nan
+    rates: list[float] = field(default_factory=list)  # Hz, the initial one and every change
+    answerers: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    settle_time: float = 5.0
+
+    @property
+    def answered_fraction(self) -> float:
+        return self.answered / self.sent if self.sent else 0.0
+
+    def describe(self) -> str:
+        rates = " → ".join(f"{r:g}" for r in self.rates)
+        lines = [
+            f"simulated vehicle: {self.sent} IMU samples sent over {self.seconds:.1f} s "
+            f"(rate {rates} Hz)",
+            f"  answered with ATTITUDE: {self.answered} ({100 * self.answered_fraction:.2f} %)"
+            + (f" by {', '.join(self.answerers)}" if self.answerers else ""),
+        ]
+        if self.scored:
+            lines.append(
+                f"  vs truth after {self.settle_time:g} s: roll {self.roll_rms:.3f}°, "
+                f"pitch {self.pitch_rms:.3f}° RMS (n={self.scored})"
+            )
+            lines.append(
+                f"  latency IMU sent → ATTITUDE received: p50 {self.latency_p50_ms:.3f} ms, "
+                f"p99 {self.latency_p99_ms:.3f} ms, max {self.latency_max_ms:.3f} ms"
+            )
+        return "\n".join(lines)
+
+    def to_json(self) -> str:
+        data = asdict(self)
+        data["answered_fraction"] = self.answered_fraction
+        return json.dumps(data, indent=2, allow_nan=True)
+
+
+class StreamingVehicle:
+    """The vehicle's state while it streams; see :func:`stream_flight`."""
+
+    def __init__(
+        self,
+        link: Link,
+        rate: float,
+        autopilot: Autopilot,
+        seed: int,
+        settle_time: float = 5.0,
+    ) -> None:
+        self.link = link
+        self.autopilot = autopilot
+        self.encoder = VehicleEncoder(autopilot)
+        self.rate = rate
+        self.model = FlightModel(STREAM_MODEL_RATE, seed)
+        self.imu = NoisyImu(None, STREAM_MODEL_RATE, seed)
+        self.settle_time = settle_time
+        self.report = VehicleReport(rates=[rate], settle_time=settle_time)
+        self._parsers: dict[Any, Any] = {}
+        # time_boot_ms → (perf_counter when sent, true roll, pitch, flight time)
+        self._sent: dict[int, tuple[float, float, float, float]] = {}
+        self._sent_order: deque[int] = deque()
+        self._answered: set[int] = set()
+        self._latencies: list[float] = []
+        self._squares = [0.0, 0.0]
+        self._answerers: set[str] = set()
+        self._accumulator = np.zeros(6)
+        self._accumulated = 0
+        self._next_emit = 0.0
+        self._next_hud = 0.0
+        # load the compiled rotation kernels now, not while the first samples are due
+        identity = np.array([1.0, 0.0, 0.0, 0.0])
+        so3.matrix_from_quat(identity)
+        so3.euler_zyx_from_quat(identity)
+
+    # ------------------------------------------------------------ receiving
+
+    def on_bytes(self, link: Link, data: bytes, peer: Any) -> None:
+        parser = self._parsers.get(peer)
+        if parser is None:
+            parser = self._parsers[peer] = MAVLink(None)
+            parser.robust_parsing = True
+        now = time.perf_counter()
+        for message in parser.parse_buffer(data) or ():
+            name = message._type
+            if name == "ATTITUDE":
+                self._on_attitude(message, now)
+            elif name == "COMMAND_LONG":
+                self._on_command(message)
+
+    def _on_attitude(self, message: Any, now: float) -> None:
+        header = message._header
+        self._answerers.add(f"{header.srcSystem}/{header.srcComponent}")
+        key = message.time_boot_ms
+        sent = self._sent.get(key)
+        if sent is None:
+            self.report.unmatched += 1
+            return
+        if key in self._answered:
+            self.report.duplicates += 1
+            return
+        self._answered.add(key)
+        sent_at, roll, pitch, t = sent
+        self._latencies.append(now - sent_at)
+        if t >= self.settle_time:
+            self._squares[0] += _wrap(message.roll - roll) ** 2
+            self._squares[1] += (message.pitch - pitch) ** 2
+            self.report.scored += 1
+
+    def _on_command(self, message: Any) -> None:
+        ours = message.target_system in (0, self.autopilot.system)
+        if not ours:
+            return
+        header = message._header
+        result = mavlink2.MAV_RESULT_UNSUPPORTED
+        if message.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
+            wanted = getattr(mavlink2, f"MAVLINK_MSG_ID_{self.autopilot.imu_message}")
+            if round(message.param1) != wanted:
+                result = mavlink2.MAV_RESULT_DENIED
+            elif message.param2 > 0:
+                self.rate = min(1e6 / message.param2, STREAM_MODEL_RATE)
+                self.report.rates.append(round(self.rate, 3))
+                log.info(
+                    "simulated vehicle: %s now at %g Hz", self.autopilot.imu_message, self.rate
+                )
+                result = mavlink2.MAV_RESULT_ACCEPTED
+            else:
+                result = mavlink2.MAV_RESULT_ACCEPTED  # 0: default rate, −1: off; keep ours
+        self.link.send(
+            self.encoder.command_ack(message.command, result, header.srcSystem, header.srcComponent)
+        )
+
+    # ------------------------------------------------------------ sending
+
+    def send_due(self, now: float) -> None:
+        """Step the flight model to ``now`` (s since start) and send the IMU samples due."""
+        flight = self.model.advance_to(now)
+        if not len(flight):
+            return
+        gyro, accel = self.imu.measure(flight.gyro, flight.accel)
+        for i in range(len(flight)):
+            self._accumulator[:3] += gyro[i]
+            self._accumulator[3:] += accel[i]
+            self._accumulated += 1
+            t = float(flight.t[i])
+            if t + 1e-9 < self._next_emit:
+                continue
+            self._next_emit += 1.0 / self.rate
+            if self._next_emit < t:  # the rate went up: restart the grid
+                self._next_emit = t + 1.0 / self.rate
+            mean = self._accumulator / self._accumulated
+            self._accumulator[:] = 0.0
+            self._accumulated = 0
+            self._send_sample(flight, i, t, mean[:3], mean[3:])
+
+    def _send_sample(
+        self, flight: Flight, i: int, t: float, gyro: np.ndarray, accel: np.ndarray
+    ) -> None:
+        q = flight.q_true[i]
+        euler = so3.euler_zyx_from_quat(q)
+        mag = so3.matrix_from_quat(q).T @ EARTH_FIELD_NED
+        t_boot = t + BOOT_OFFSET
+        key = math.floor(t_boot * 1000.0 + 1e-6)
+        packet = self.encoder.imu(t_boot, gyro, accel, mag)
+        truth = self.encoder.simstate(
+            euler, flight.accel[i], flight.gyro[i], flight.latitude[i], flight.longitude[i]
+        )
+        self._sent[key] = (time.perf_counter(), float(euler[0]), float(euler[1]), t)
+        self._sent_order.append(key)
+        while len(self._sent_order) > 20_000:  # answers older than that are not waited for
+            self._sent.pop(self._sent_order.popleft(), None)
+        self.link.send(packet)
+        self.link.send(truth)
+        if t >= self._next_hud:
+            self.link.send(self.encoder.vfr_hud(flight, i))
+            self._next_hud = t + HUD_PERIOD
+        self.report.sent += 1
+
+    def heartbeat(self) -> None:
+        self.link.send(self.encoder.heartbeat())
+
+    def finish(self, seconds: float) -> VehicleReport:
+        report = self.report
+        report.seconds = seconds
+        report.answered = len(self._answered)
+        report.answerers = sorted(self._answerers)
+        if report.scored:
+            report.roll_rms = math.degrees(math.sqrt(self._squares[0] / report.scored))
+            report.pitch_rms = math.degrees(math.sqrt(self._squares[1] / report.scored))
+        if self._latencies:
+            latencies = np.array(self._latencies) * 1e3
+            report.latency_p50_ms = float(np.percentile(latencies, 50))
+            report.latency_p99_ms = float(np.percentile(latencies, 99))
+            report.latency_max_ms = float(latencies.max())
+        return report
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+async def stream_flight(
+    connection: str,
+    rate: float,
+    autopilot: Autopilot = AUTOPILOTS["ardupilot"],
+    seed: int = 1,
+    seconds: float | None = None,
+    stop: asyncio.Event | None = None,
+    linger: float = 0.5,
+) -> VehicleReport:
+    """Fly and stream until ``seconds`` have passed or ``stop`` is set (SIGINT/SIGTERM
+    when ``stop`` is not given); then wait ``linger`` s for the last answers."""
+    link = make_link(parse_endpoint(connection))
+    vehicle = StreamingVehicle(link, rate, autopilot, seed)
+    with stop_on_signals(stop) as stopping:
+        return await _stream(vehicle, link, autopilot, rate, seconds, stopping, linger)
+
+
+async def _stream(
+    vehicle: StreamingVehicle,
+    link: Link,
+    autopilot: Autopilot,
+    rate: float,
+    seconds: float | None,
+    stop: asyncio.Event,
+    linger: float,
+) -> VehicleReport:
+    await link.start(vehicle.on_bytes)
+    log.info(
+        "simulated %s vehicle %d/%d: %s at %g Hz to %s",
+        autopilot.name,
+        autopilot.system,
+        autopilot.component,
+        autopilot.imu_message,
+        rate,
+        link,
+    )
+    start = time.perf_counter()
+    next_heartbeat = 0.0
+    try:
+        while not stop.is_set():
+            now = time.perf_counter() - start
+            if seconds is not None and now >= seconds:
+                break
+            if now >= next_heartbeat:
+                vehicle.heartbeat()
+                next_heartbeat += 1.0
+            vehicle.send_due(now)
+            await asyncio.sleep(0.0005)
+        await asyncio.sleep(linger)
+    finally:
+        link.close()
+    return vehicle.finish(time.perf_counter() - start)

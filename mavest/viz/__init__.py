@@ -1,0 +1,1 @@
+"""Visualisation: Rerun recordings and viewers."""

