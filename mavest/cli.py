@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -29,6 +30,7 @@ from mavest.mavlink.tlog import TlogError
 from mavest.service.config import ServiceConfig
 from mavest.service.runners import Outputs, replay, run_live
 from mavest.service.signals import stop_on_signals
+from mavest.viz.viewer import VIEWER_MODES, ViewerError
 
 log = logging.getLogger("mavest")
 
@@ -95,15 +97,32 @@ def _say_compiling() -> None:
 # --------------------------------------------------------------------------
 
 
+def _outputs(args: argparse.Namespace) -> Outputs:
+    mode, url = None, None
+    if args.rerun is not None:
+        mode, _, url = args.rerun.partition("=")
+        if mode not in VIEWER_MODES or (url and mode != "connect"):
+            raise UsageError(f"--rerun {args.rerun}: use spawn, connect, connect=URL or serve")
+    return Outputs(
+        tlog=args.out_tlog,
+        rrd=args.rrd,
+        rerun=mode,
+        rerun_url=url or None,
+        rerun_bind=args.rerun_bind,
+        rerun_port=args.rerun_port,
+        rerun_web_port=args.rerun_web_port,
+    )
+
+
 def _run(args: argparse.Namespace) -> int:
     config = _load_config(args)
     _say_compiling()
-    outputs = Outputs(tlog=args.out_tlog, rrd=args.rrd)
+    outputs = _outputs(args)
     try:
         report = asyncio.run(
             run_live(args.connection, config, tuple(args.out), outputs, baud=args.baud)
         )
-    except (LinkError, TlogError) as error:
+    except (LinkError, TlogError, ViewerError) as error:
         raise UsageError(str(error)) from None
     print(report.summary())
     return 0
@@ -114,7 +133,7 @@ def _replay(args: argparse.Namespace) -> int:
     if args.speed is not None and args.speed <= 0:
         raise UsageError("--speed must be positive (1 = real time)")
     _say_compiling()
-    outputs = Outputs(tlog=args.out_tlog, rrd=args.rrd)
+    outputs = _outputs(args)
 
     async def main() -> Any:
         with stop_on_signals() as stop:
@@ -122,7 +141,7 @@ def _replay(args: argparse.Namespace) -> int:
 
     try:
         report = asyncio.run(main())
-    except TlogError as error:
+    except (TlogError, ViewerError) as error:
         raise UsageError(str(error)) from None
     print(report.summary())
     if not report.pipeline.streams:
@@ -261,7 +280,30 @@ def _add_stream_options(parser: argparse.ArgumentParser) -> None:
         metavar="HZ",
         help="ATTITUDE rate (default 0: one per IMU sample)",
     )
-    group.add_argument("--rrd", type=Path, metavar="PATH", help="save a Rerun recording")
+    group.add_argument("--rrd", type=Path, metavar="PATH", help="save a Rerun recording (.rrd)")
+    group.add_argument(
+        "--rerun",
+        metavar="MODE",
+        help="live Rerun viewer: spawn (a window here), connect[=URL] (a running viewer, "
+        "default rerun+http://127.0.0.1:9876/proxy) or serve (a web viewer for a browser)",
+    )
+    group.add_argument(
+        "--rerun-bind",
+        default="127.0.0.1",
+        metavar="ADDRESS",
+        help="address a spawned or served viewer listens on (default 127.0.0.1: this "
+        "machine only; 0.0.0.0 exposes it to the network)",
+    )
+    group.add_argument(
+        "--rerun-port", type=int, default=9876, metavar="PORT", help="its gRPC port (default 9876)"
+    )
+    group.add_argument(
+        "--rerun-web-port",
+        type=int,
+        default=9090,
+        metavar="PORT",
+        help="the served web viewer's HTTP port (default 9090)",
+    )
     group.add_argument(
         "--out-tlog",
         type=Path,
@@ -403,6 +445,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # the reader of our output went away (`mavest … | head`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

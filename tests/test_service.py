@@ -161,7 +161,7 @@ class _Service:
         assert self.process.stderr is not None
         for line in self.process.stderr:
             self.log.append(line)
-            if "listening on" in line:
+            if line.startswith("mavest: listening on"):
                 self._ready.set()
 
     def stop(self) -> tuple[int, str]:

@@ -25,8 +25,8 @@ from mavest.sim.flight import (
     NoisyImu,
     apply_imu_errors,
     fly,
-    quats_from_euler_zyx,
 )
+from mavest.so3 import quats_from_euler_zyx
 
 G = 9.80665
 FIELDS = ("t", "gyro", "accel", "q_true", "latitude", "longitude", "altitude", "velocity")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -57,9 +58,19 @@ _NATIVE_IMU = {
 class EstimateSink(Protocol):
     """Something that takes every estimate (the Rerun recorder, a test)."""
 
-    def on_estimate(self, stream: Stream, sample: ImuSample, estimate: Any) -> None: ...
+    def on_estimate(
+        self,
+        stream: Stream,
+        sample: ImuSample,
+        estimate: Any,
+        euler: tuple[float, float, float],
+        receive_us: int,
+        processing_s: float,
+    ) -> None: ...
 
-    def on_reference(self, stream: Stream, source: str, t: float, euler: tuple) -> None: ...
+    def on_reference(
+        self, stream: Stream, source: str, t: float, euler: tuple, receive_us: int
+    ) -> None: ...
 
 
 @dataclass
@@ -236,6 +247,7 @@ class Pipeline:
         return system not in self.config.input.ignore_systems
 
     def _on_imu(self, message: Any, system: int, component: int) -> None:
+        start = time.perf_counter()
         if not self._follows(system):
             self.ignored += 1
             return
@@ -250,7 +262,7 @@ class Pipeline:
             if stream is None:
                 self._not_followed.add(sample.stream)
                 return
-        self._estimate(stream, sample)
+        self._estimate(stream, sample, start)
 
     def _new_stream(self, key: StreamKey) -> Stream | None:
         """A stream seen for the first time: follow it if the configuration selects it."""
@@ -292,7 +304,7 @@ class Pipeline:
 
     # ---------------------------------------------------------------- estimation
 
-    def _estimate(self, stream: Stream, sample: ImuSample) -> None:
+    def _estimate(self, stream: Stream, sample: ImuSample, start: float) -> None:
         stats = stream.stats
         stats.received += 1
         gyro, accel = sample.gyro, sample.accel
@@ -350,8 +362,10 @@ class Pipeline:
         euler_tuple = (float(euler[0]), float(euler[1]), float(euler[2]))
         stream.vs_autopilot.add_estimate(t, euler_tuple)
         stream.vs_truth.add_estimate(t, euler_tuple)
-        for sink in self.sinks:
-            sink.on_estimate(stream, sample, estimate)
+        if self.sinks:
+            processing = time.perf_counter() - start
+            for sink in self.sinks:
+                sink.on_estimate(stream, sample, estimate, euler_tuple, self._record_us, processing)
         if stream.primary and t >= stream.next_output:
             self._answer(stream, t, estimate, euler_tuple, gyro)
 
@@ -400,7 +414,7 @@ class Pipeline:
                 return
             stream.vs_autopilot.add_reference(t, euler)
         for sink in self.sinks:
-            sink.on_reference(stream, source, t, euler)
+            sink.on_reference(stream, source, t, euler, self._record_us)
 
     # ---------------------------------------------------------------- output
 

@@ -27,6 +27,13 @@ from mavest.service.config import ServiceConfig
 from mavest.service.pipeline import Pipeline, Stream
 from mavest.service.signals import stop_on_signals
 from mavest.viz.recorder import RerunRecorder
+from mavest.viz.viewer import (
+    DEFAULT_GRPC_PORT,
+    DEFAULT_WEB_PORT,
+    Viewer,
+    ViewerError,
+    ViewerRequest,
+)
 
 log = logging.getLogger("mavest")
 
@@ -36,10 +43,26 @@ REPLAY_MESSAGES = message_ids([*IMU_MESSAGES, "ATTITUDE", "SIMSTATE", "HEARTBEAT
 
 @dataclass
 class Outputs:
-    """Files a run writes besides the MAVLink it sends."""
+    """Files and viewers a run writes to, besides the MAVLink it sends."""
 
     tlog: Path | None = None
     rrd: Path | None = None
+    rerun: str | None = None  # live viewer: "spawn", "connect" or "serve"
+    rerun_url: str | None = None  # for "connect"
+    rerun_bind: str = "127.0.0.1"  # for "spawn"/"serve": where the viewer listens
+    rerun_port: int = DEFAULT_GRPC_PORT
+    rerun_web_port: int = DEFAULT_WEB_PORT
+
+    def viewer_request(self) -> ViewerRequest:
+        rrd = Path(self.rrd) if self.rrd is not None else None
+        return ViewerRequest(
+            rrd,
+            self.rerun,
+            self.rerun_url,
+            self.rerun_bind,
+            self.rerun_port,
+            self.rerun_web_port,
+        )
 
 
 @dataclass
@@ -63,17 +86,45 @@ class RunReport:
         return format_summary(self)
 
 
-def _open_outputs(outputs: Outputs) -> tuple[TlogWriter | None, RerunRecorder | None]:
-    tlog = TlogWriter(outputs.tlog) if outputs.tlog is not None else None
-    recorder = RerunRecorder(outputs.rrd) if outputs.rrd is not None else None
-    return tlog, recorder
+class _Opened:
+    """The outputs of a run, open: the output tlog, the Rerun recording and its recorder."""
 
+    def __init__(self, outputs: Outputs) -> None:
+        self.tlog = TlogWriter(outputs.tlog) if outputs.tlog is not None else None
+        self.viewer: Viewer | None = None
+        self.recorder: RerunRecorder | None = None
+        request = outputs.viewer_request()
+        if request.wanted:
+            try:
+                self.viewer = Viewer(request)
+            except ViewerError:
+                self.close()
+                raise
+            self.recorder = RerunRecorder.for_viewer(
+                self.viewer.recording, live=request.mode is not None
+            )
+            self.recorder.on_new_stream.append(self.viewer.add_stream)
 
-def _close_outputs(tlog: TlogWriter | None, recorder: RerunRecorder | None) -> None:
-    if tlog is not None:
-        tlog.close()
-    if recorder is not None:
-        recorder.close()
+    @property
+    def sinks(self) -> list[RerunRecorder]:
+        return [self.recorder] if self.recorder is not None else []
+
+    def flush(self) -> None:
+        if self.tlog is not None:
+            self.tlog.flush()
+        if self.recorder is not None:
+            self.recorder.flush()
+        if self.viewer is not None:
+            self.viewer.check()
+            self.viewer.flush()
+
+    def close(self) -> None:
+        if self.tlog is not None:
+            self.tlog.close()
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.viewer is not None:
+            self.viewer.close()
 
 
 class _Progress:
@@ -120,8 +171,9 @@ async def replay(
     """Replay a tlog through the pipeline (:class:`~mavest.mavlink.tlog.TlogError` if unusable)."""
     outputs = outputs or Outputs()
     reader = TlogReader.open(path, REPLAY_MESSAGES)
-    tlog, recorder = _open_outputs(outputs)
-    pipeline = Pipeline(config, out_tlog=tlog, sinks=[recorder] if recorder else [])
+    opened = _Opened(outputs)
+    tlog = opened.tlog
+    pipeline = Pipeline(config, out_tlog=tlog, sinks=opened.sinks)
     bar = _Progress(reader.size, enabled=progress)
     report = RunReport(pipeline, 0.0, source=str(path), outputs=outputs)
     heartbeat_period = 1.0 / config.output.heartbeat_rate if config.output.heartbeat_rate else 0.0
@@ -154,7 +206,7 @@ async def replay(
                     break
     finally:
         bar.finish()
-        _close_outputs(tlog, recorder)
+        opened.close()
     report.elapsed = time.perf_counter() - start
     report.records = records
     report.bad_records = reader.stats.bad_crc
@@ -183,13 +235,13 @@ async def run_live(
     ]
     # Compile (or load) the filter before listening: the first IMU packet must not wait for it.
     Estimator(config.estimator)
-    tlog, recorder = _open_outputs(outputs)
+    opened = _Opened(outputs)
     links: list[Link] = [make_link(e) for e in endpoints]
     pipeline = Pipeline(
         config,
         links=links,
-        out_tlog=tlog,
-        sinks=[recorder] if recorder else [],
+        out_tlog=opened.tlog,
+        sinks=opened.sinks,
         now_us=lambda: time.time_ns() // 1000,
     )
     report = RunReport(pipeline, 0.0, source=connection, outputs=outputs)
@@ -197,9 +249,7 @@ async def run_live(
     start = time.perf_counter()
     with stop_on_signals(stop) as stopping:
         try:
-            await _serve(
-                pipeline, links, config, tlog, recorder, status_period, ready, stopping, tasks
-            )
+            await _serve(pipeline, links, config, opened, status_period, ready, stopping, tasks)
         finally:
             for task in tasks:
                 task.cancel()
@@ -208,7 +258,7 @@ async def run_live(
                     await task
             for link in links:
                 link.close()
-            _close_outputs(tlog, recorder)
+            opened.close()
     report.elapsed = time.perf_counter() - start
     report.records = pipeline.messages_in
     report.bad_records = pipeline.bad_packets
@@ -219,8 +269,7 @@ async def _serve(
     pipeline: Pipeline,
     links: list[Link],
     config: ServiceConfig,
-    tlog: TlogWriter | None,
-    recorder: RerunRecorder | None,
+    opened: _Opened,
     status_period: float,
     ready: asyncio.Event | None,
     stop: asyncio.Event,
@@ -243,8 +292,7 @@ async def _serve(
     tasks.append(asyncio.create_task(_every(2.0, pipeline.request_intervals)))
     if status_period > 0:
         tasks.append(asyncio.create_task(_every(status_period, lambda: _status(pipeline))))
-    if tlog is not None or recorder is not None:
-        tasks.append(asyncio.create_task(_every(1.0, lambda: _flush(tlog, recorder))))
+    tasks.append(asyncio.create_task(_every(1.0, opened.flush)))
     await stop.wait()
 
 
@@ -252,13 +300,6 @@ async def _every(period: float, action: object) -> None:
     while True:
         await asyncio.sleep(period)
         action()  # type: ignore[operator]
-
-
-def _flush(tlog: TlogWriter | None, recorder: RerunRecorder | None) -> None:
-    if tlog is not None:
-        tlog.flush()
-    if recorder is not None:
-        recorder.flush()
 
 
 def _status(pipeline: Pipeline) -> None:
@@ -331,7 +372,7 @@ def format_summary(report: RunReport) -> str:
                 lines.append(f"    vs {name} after {settle:g} s: {result.describe()}")
     if pipeline.sent:
         lines.append(f"  sent {pipeline.sent} messages")
-    for label, path in (("tlog", report.outputs.tlog), ("rrd", report.outputs.rrd)):
+    for label, path in (("tlog", report.outputs.tlog), ("Rerun recording", report.outputs.rrd)):
         if path is not None:
             lines.append(f"  wrote {path} ({label})")
     return "\n".join(lines)

@@ -55,6 +55,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mavest.so3 import quats_from_euler_zyx
+
 FT = 0.3048  # m per ft
 
 # The aircraft and the properties read at every sample, in the order of the
@@ -141,29 +143,6 @@ class Flight:
 
     def __len__(self) -> int:
         return len(self.t)
-
-
-def quats_from_euler_zyx(angles: np.ndarray) -> np.ndarray:
-    """(N, 4) quaternions of (N, 3) ZYX angles (roll, pitch, yaw), vectorised.
-
-    The same formula as ``so3.quat_from_euler_zyx``; vectorised here because a
-    flight has ~10⁵ samples and a per-sample kernel call would cost more than
-    the conversion.
-    """
-    half = 0.5 * np.asarray(angles, dtype=float)
-    cr, sr = np.cos(half[:, 0]), np.sin(half[:, 0])
-    cp, sp = np.cos(half[:, 1]), np.sin(half[:, 1])
-    cy, sy = np.cos(half[:, 2]), np.sin(half[:, 2])
-    q = np.column_stack(
-        [
-            cy * cp * cr + sy * sp * sr,
-            cy * cp * sr - sy * sp * cr,
-            cy * sp * cr + sy * cp * sr,
-            sy * cp * cr - cy * sp * sr,
-        ]
-    )
-    q[q[:, 0] < 0.0] *= -1.0  # w ≥ 0, as so3 normalises
-    return q
 
 
 def _flight_from_rows(rate: float, t: np.ndarray, rows: np.ndarray, setpoint: np.ndarray) -> Flight:

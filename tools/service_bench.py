@@ -1,6 +1,6 @@
-"""Live latency and replay throughput of the service, beside pymavlink's plain parse.
+"""The service's speed: live latency, replay throughput beside pymavlink, Rerun's cost.
 
-    .venv/bin/python tools/latency.py [--seconds 30] [--rate 1000] [--replay-seconds 60]
+    .venv/bin/python tools/service_bench.py [--seconds 30] [--rate 1000] [--replay-seconds 60]
 
 Live: the simulated vehicle streams RAW_IMU at ``--rate`` over loopback UDP to
 ``mavest run udpin:…`` (a separate process, as users run it) and times every
@@ -8,12 +8,15 @@ IMU packet sent → ATTITUDE received, matched by ``time_boot_ms``. Replay: a
 1 kHz simulated flight written to a tlog, then the whole command
 ``mavest replay FILE --out-tlog OUT`` timed, beside pymavlink reading every
 message of the same file (``recv_msg`` until the end), in the same run.
+Rerun: the same replay with and without ``--rrd`` in interleaved rounds, CPU
+time (user + system) of the whole command; the ratio is what recording costs.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import socket
 import subprocess
 import sys
@@ -22,6 +25,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 from pymavlink import mavutil
 
 from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
@@ -95,11 +99,39 @@ def replay_throughput(seconds: float, workdir: Path) -> dict[str, float]:
     }
 
 
+def _cpu_seconds(command: list[str]) -> float:
+    """User + system CPU time of a child process."""
+    before = os.times()
+    subprocess.run(command, check=True, capture_output=True)
+    after = os.times()
+    return (after.children_user - before.children_user) + (
+        after.children_system - before.children_system
+    )
+
+
+def rerun_cost(seconds: float, workdir: Path, rounds: int) -> dict[str, float]:
+    flight = workdir / "flight_rerun.tlog"
+    write_flight_tlog(flight, seconds, 1000.0, AUTOPILOTS["ardupilot"], seed=2)
+    plain = [*MAVEST, "replay", str(flight), "-q"]
+    recorded = [*plain, "--rrd", str(workdir / "x.rrd")]
+    _cpu_seconds(plain)  # warm the caches
+    without, with_rrd = [], []
+    for _ in range(rounds):
+        without.append(_cpu_seconds(plain))
+        with_rrd.append(_cpu_seconds(recorded))
+    return {
+        "without": float(np.median(without)),
+        "with": float(np.median(with_rrd)),
+        "rrd MB": (workdir / "x.rrd").stat().st_size / 1e6,
+    }
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="live stream length")
     parser.add_argument("--rate", type=float, default=1000.0, help="live IMU rate, Hz")
     parser.add_argument("--replay-seconds", type=float, default=60.0, help="1 kHz tlog length")
+    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds for Rerun's cost")
     args = parser.parse_args()
     result = live(args.seconds, args.rate)
     print(f"\nLive, {args.rate:g} Hz RAW_IMU over loopback UDP for {args.seconds:g} s")
@@ -111,6 +143,7 @@ def main() -> int:
     )
     with tempfile.TemporaryDirectory() as workdir:
         replayed = replay_throughput(args.replay_seconds, Path(workdir))
+        cost = rerun_cost(args.replay_seconds, Path(workdir), args.rounds)
     rate_ours = replayed["messages"] / replayed["mavest replay s"]
     rate_theirs = replayed["messages"] / replayed["pymavlink parse s"]
     print(f"\nReplay of a {args.replay_seconds:g} s 1 kHz tlog ({replayed['messages']} messages)")
@@ -123,6 +156,17 @@ def main() -> int:
     print(
         f"| pymavlink `recv_msg` loop | {replayed['pymavlink parse s']:.2f} | "
         f"{rate_theirs:,.0f} | 1× |"
+    )
+    print(
+        f"\nRerun recording at 1 kHz ({args.replay_seconds:g} s replay, CPU s, median of "
+        f"{args.rounds} interleaved rounds)"
+    )
+    print("| replay | CPU s | × without |")
+    print("|---|---:|---:|")
+    print(f"| without `--rrd` | {cost['without']:.2f} | 1 |")
+    print(
+        f"| with `--rrd` ({cost['rrd MB']:.1f} MB) | {cost['with']:.2f} | "
+        f"{cost['with'] / cost['without']:.3f} |"
     )
     return 0
 
