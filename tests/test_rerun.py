@@ -102,8 +102,14 @@ def test_truth_and_raw_imu_are_the_inputs(recorded: dict[str, Path]) -> None:
     series = _scalars(recorded["rrd"])
     truth = _messages(recorded["flight"], "SIMSTATE", 1)
     raw = _messages(recorded["flight"], "RAW_IMU", 1)
-    _, roll, _ = series[f"{ROOT}/attitude/roll/truth"]
-    np.testing.assert_allclose(roll[:, 0], np.degrees([m.roll for m in truth]), atol=1e-4)
+    t_truth, roll, _ = series[f"{ROOT}/attitude/roll/truth"]
+    # SIMSTATE comes with every RAW_IMU (200 Hz); the truth is plotted at up to 100 Hz
+    raw_t = np.array([m.time_usec for m in _messages(recorded["flight"], "RAW_IMU", 1)]) * 1e-6
+    assert 0.45 * len(truth) < len(t_truth) <= 0.5 * len(truth) + 2
+    at = np.searchsorted(raw_t, t_truth - 1e-7)
+    np.testing.assert_allclose(t_truth, raw_t[at], atol=1e-6)
+    expected = np.degrees([truth[k].roll for k in at])
+    np.testing.assert_allclose(roll[:, 0], expected, atol=1e-4)
     _, gyro, _ = series[f"{ROOT}/imu/gyro"]
     expected = np.degrees([[m.xgyro, m.ygyro, m.zgyro] for m in raw]) * 1e-3  # mrad/s
     np.testing.assert_allclose(gyro, expected, rtol=1e-9, atol=1e-9)

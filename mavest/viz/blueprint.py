@@ -13,9 +13,17 @@ import rerun.blueprint as rrb
 
 from mavest.viz.recorder import VEHICLE_TIME
 
+# Plots show the last minute up to the time cursor: live, a moving window; in a
+# recording opened at its end, the last minute of the flight.
+_LAST_MINUTE = rrb.VisibleTimeRange(
+    VEHICLE_TIME,
+    start=rrb.TimeRangeBoundary.cursor_relative(seconds=-60.0),
+    end=rrb.TimeRangeBoundary.cursor_relative(seconds=0.0),
+)
+
 
 def _series(origin: str, name: str) -> rrb.TimeSeriesView:
-    return rrb.TimeSeriesView(origin=origin, name=name)
+    return rrb.TimeSeriesView(origin=origin, name=name, time_ranges=_LAST_MINUTE)
 
 
 def stream_layout(root: str) -> rrb.Horizontal:

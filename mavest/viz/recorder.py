@@ -6,7 +6,8 @@ Per IMU stream (root ``vehicle_<sys>_<comp>/<message>_<instance>``):
   (two series: ±3σ from the covariance, the world-frame attitude error mapped
   through the ZYX Euler kinematics); ``…/autopilot`` and ``…/truth`` beside;
 - ``error/{roll,pitch,yaw}/{vs_autopilot,vs_truth}``: ours minus theirs at
-  their times (ours interpolated);
+  their times (ours interpolated); references faster than ``slow_rate`` (a
+  simulator's truth at the IMU rate) are plotted at ``slow_rate``;
 - ``bias/{x,y,z}`` in °/s: the estimate and ±1σ (bias and bounds change
   slowly and are logged at up to ``slow_rate``, 100 Hz);
 - ``imu/gyro`` (°/s), ``imu/accel`` (m/s²): what came in, x, y, z;
@@ -99,6 +100,7 @@ class _StreamBuffer:
     anchor: tuple[float, float, float, float] | None = None
     last_pose_t: dict[str, float] = field(default_factory=dict)  # body → last posed time
     last_slow_t: float = -math.inf  # last sample logged at the slow rate
+    last_reference_t: dict[str, float] = field(default_factory=dict)  # source → time
     rows_sent: int = 0
 
 
@@ -312,7 +314,16 @@ class RerunRecorder:
         for source, references in buffer.references.items():
             if not references:
                 continue
-            data = np.array(references)
+            everything = np.array(references)
+            references.clear()
+            self._send_poses(buffer, source, everything[:, 0], everything[:, 2:5])
+            # a reference at the IMU rate (a simulator's truth) is plotted at up to slow_rate
+            last = buffer.last_reference_t.get(source, -math.inf)
+            kept = _grid_samples(everything[:, 0], self.slow_period, last)
+            if not len(kept):
+                continue
+            data = everything[kept]
+            buffer.last_reference_t[source] = data[-1, 0]
             receive = data[:, 1] if np.all(data[:, 1] > 0) else None
             for i, axis in enumerate(("roll", "pitch", "yaw")):
                 self._send(
@@ -321,8 +332,6 @@ class RerunRecorder:
                     receive,
                     np.degrees(data[:, 2 + i]),
                 )
-            self._send_poses(buffer, source, data[:, 0], data[:, 2:5])
-            references.clear()
             if n:
                 self._send_differences(buffer, source, t, euler, data)
 
