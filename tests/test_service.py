@@ -22,6 +22,7 @@ from mavest.datasets import data_root
 from mavest.service.config import ServiceConfig
 from mavest.service.runners import Outputs, replay
 from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
+from mavest.viz.viewer import rerun_binary
 
 PROJECT = Path(__file__).resolve().parents[1]
 MAVEST = [sys.executable, "-m", "mavest.cli"]
@@ -172,8 +173,10 @@ class _Service:
 
 def test_live_loopback_udp_500hz(tmp_path: Path) -> None:
     port = _free_udp_port()
-    live_tlog = tmp_path / "live.tlog"
-    service = _Service(f"udpin:127.0.0.1:{port}", "--out-tlog", str(live_tlog))
+    live_tlog, live_rrd = tmp_path / "live.tlog", tmp_path / "live.rrd"
+    service = _Service(
+        f"udpin:127.0.0.1:{port}", "--out-tlog", str(live_tlog), "--rrd", str(live_rrd)
+    )
     report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{port}", 500.0, seed=2, seconds=25.0))
     code, summary = service.stop()
     assert code == 0, "".join(service.log)
@@ -188,6 +191,11 @@ def test_live_loopback_udp_500hz(tmp_path: Path) -> None:
     counts = Counter((m.get_type(), m.get_srcComponent()) for m in _messages(live_tlog))
     assert counts[("RAW_IMU", 1)] == report.sent
     assert counts[("ATTITUDE", 191)] >= report.answered
+    # and the recording written live is one rerun accepts
+    verify = subprocess.run(
+        [rerun_binary() or "rerun", "rrd", "verify", str(live_rrd)], capture_output=True, text=True
+    )
+    assert verify.returncode == 0 and "1 file verified without error" in verify.stderr
 
 
 def test_live_asks_for_the_imu_rate_and_the_vehicle_obeys(tmp_path: Path) -> None:

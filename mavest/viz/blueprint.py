@@ -49,7 +49,7 @@ def stream_layout(root: str) -> rrb.Horizontal:
         rrb.Vertical(
             _series(f"{root}/nis", "NIS (χ², 2 dof) and its 90 % band"),
             _series(f"{root}/innovation", "gravity innovation (°)"),
-            _series(f"{root}/accel", "accelerometer used (1) / disturbed (1)"),
+            _series(f"{root}/accel", "accelerometer: fraction used / disturbed (per 10 ms)"),
             name="accelerometer update",
         ),
         rrb.Vertical(

@@ -11,8 +11,11 @@ Per IMU stream (root ``vehicle_<sys>_<comp>/<message>_<instance>``):
 - ``bias/{x,y,z}`` in °/s: the estimate and ±1σ (bias and bounds change
   slowly and are logged at up to ``slow_rate``, 100 Hz);
 - ``imu/gyro`` (°/s), ``imu/accel`` (m/s²): what came in, x, y, z;
-- ``innovation`` (°, x, y), ``nis/value`` with ``nis/chi2_band`` (χ², 2 dof,
-  the central 90 % band), ``accel`` (used, disturbed: 1/0);
+- ``innovation`` (°, x, y) and ``nis/value`` with ``nis/chi2_band`` (χ², 2 dof,
+  the central 90 % band): one sample per ``slow_rate`` slot (each still a
+  single update's, so the band stays right); ``accel`` (the fraction of the
+  slot's samples whose accelerometer was used, and disturbed), so that not one
+  rejection is hidden by the thinning;
 - ``timing/processing_us``: decode to estimate, per sample;
 - ``world/<root>/{mavest,autopilot,truth}``: the vehicle body in 3-D (NED),
   side by side, posed at up to ``pose_rate`` Hz.
@@ -208,7 +211,11 @@ class RerunRecorder:
             rr.SeriesPoints(colors=[COLORS["mavest"]], names=["NIS"], marker_sizes=[1.5]),
             static=True,
         )
-        style(f"{root}/accel", [COLORS["truth"], COLORS["autopilot"]], ["used", "disturbed"])
+        style(
+            f"{root}/accel",
+            [COLORS["truth"], COLORS["autopilot"]],
+            ["fraction used", "fraction disturbed"],
+        )
         style(f"{root}/timing/processing_us", [COLORS["mavest"]], ["µs per sample"])
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_DOWN, static=True)  # NED
 
@@ -259,7 +266,7 @@ class RerunRecorder:
                 *buffer.samples, strict=True
             )
             buffer.samples.clear()
-            t = np.array([e.t for e in estimates])
+            t = np.fromiter((e.t for e in estimates), float, n)
             rx = np.array(receives)
             euler = np.array(eulers)
             angle = np.degrees(euler)
@@ -287,24 +294,8 @@ class RerunRecorder:
                     self._send(f"{root}/bias/{axis}", ts, rxs, series)
             self._send(f"{root}/imu/gyro", t, rx, np.degrees(np.array(gyros)))
             self._send(f"{root}/imu/accel", t, rx, np.array(accels))
-            innovation = np.array([e.innovation for e in estimates])
-            self._send(f"{root}/innovation", t, rx, np.degrees(innovation))
-            nis = np.array([e.nis for e in estimates])
-            measured = np.isfinite(nis)
-            if np.any(measured):
-                self._send(f"{root}/nis/value", t[measured], rx[measured], nis[measured])
-            ends = [0, n - 1] if n > 1 else [0]  # a constant band needs only its ends
-            self._send(
-                f"{root}/nis/chi2_band",
-                t[ends],
-                rx[ends],
-                np.tile([CHI2_2_LOW, CHI2_2_HIGH], (len(ends), 1)),
-            )
-            disturbed = StepFlags.ACCEL_DISTURBED
-            accel_state = np.array(
-                [(e.accel_used, (e.flags & disturbed) != 0) for e in estimates], dtype=float
-            )
-            self._send(f"{root}/accel", t, rx, accel_state)
+            if len(slow):
+                self._send_update(buffer.root, estimates, slow, t, rx)
             self._send(f"{root}/timing/processing_us", t, rx, 1e6 * np.array(processing))
             self._send_poses(buffer, "mavest", t, estimates)
             buffer.rows_sent += n
@@ -334,6 +325,35 @@ class RerunRecorder:
                 )
             if n:
                 self._send_differences(buffer, source, t, euler, data)
+
+    def _send_update(
+        self, root: str, estimates: tuple, slow: np.ndarray, t: np.ndarray, rx: np.ndarray
+    ) -> None:
+        """The accelerometer update, per ``slow_rate`` slot (``slow``: each slot's first)."""
+        ts, rxs = t[slow], rx[slow]
+        innovation = np.array([estimates[k].innovation for k in slow])
+        self._send(f"{root}/innovation", ts, rxs, np.degrees(innovation))
+        nis = np.fromiter((estimates[k].nis for k in slow), float, len(slow))
+        measured = np.isfinite(nis)
+        if np.any(measured):
+            self._send(f"{root}/nis/value", ts[measured], rxs[measured], nis[measured])
+        ends = [0, len(slow) - 1] if len(slow) > 1 else [0]  # a constant band: its ends
+        self._send(
+            f"{root}/nis/chi2_band",
+            ts[ends],
+            rxs[ends],
+            np.tile([CHI2_2_LOW, CHI2_2_HIGH], (len(ends), 1)),
+        )
+        n = len(estimates)
+        used = np.fromiter((e.accel_used for e in estimates), float, n)
+        flags = np.fromiter((e.flags for e in estimates), np.int64, n)
+        disturbed = ((flags & StepFlags.ACCEL_DISTURBED) != 0).astype(float)
+        # fractions per slot; the first slot may have begun in the previous batch
+        counts = np.diff(np.append(slow, n))
+        fractions = np.column_stack(
+            [np.add.reduceat(used, slow) / counts, np.add.reduceat(disturbed, slow) / counts]
+        )
+        self._send(f"{root}/accel", ts, rxs, fractions)
 
     def _send_differences(
         self,
