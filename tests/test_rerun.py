@@ -208,8 +208,9 @@ class _Service:
         return self.process.returncode
 
 
-def test_served_viewer_listens_on_this_machine_only() -> None:
+def test_served_viewer_listens_on_this_machine_only(tmp_path: Path) -> None:
     grpc, web, udp = _free_port(), _free_port(), _free_port(socket.SOCK_DGRAM)
+    rrd = tmp_path / "served.rrd"
     service = _Service(
         f"udpin:127.0.0.1:{udp}",
         "--rerun",
@@ -218,14 +219,21 @@ def test_served_viewer_listens_on_this_machine_only() -> None:
         str(grpc),
         "--rerun-web-port",
         str(web),
+        "--rrd",
+        str(rrd),  # saved and served at once
     )
     try:
         assert any("Rerun web viewer: http://127.0.0.1" in line for line in service.log)
         loopback = "0100007F"  # 127.0.0.1 as /proc/net/tcp writes it
         assert _listening_addresses(grpc) == {loopback}
         assert _listening_addresses(web) == {loopback}
+        report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{udp}", 100.0, seconds=3.0))
+        assert report.answered_fraction >= 0.99
     finally:
         assert service.stop() == 0
+    assert not _listening_addresses(grpc)  # the served viewer went with the service
+    series = _scalars(rrd)
+    assert len(series[f"{ROOT}/attitude/roll/mavest"][0]) == report.answered
 
 
 @pytest.mark.parametrize(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import math
 import sys
@@ -127,6 +128,19 @@ class _Opened:
             self.viewer.close()
 
 
+def _settle_heap() -> None:
+    """Move everything alive now (modules, compiled code, the recording's machinery) out of
+    the garbage collector's view before the per-sample work starts.
+
+    A full collection walks every tracked object, and numba, numpy and rerun leave
+    hundreds of thousands of them; the Rerun recorder holds each batch's estimates
+    for a moment, which makes full collections frequent. Frozen, they cost nothing:
+    the recording's share of the CPU time went from ~15 % to ~2 % (tools/service_bench.py).
+    """
+    gc.collect()
+    gc.freeze()
+
+
 class _Progress:
     """A one-line progress bar on a terminal (nothing when the output is not one)."""
 
@@ -175,6 +189,7 @@ async def replay(
     tlog = opened.tlog
     pipeline = Pipeline(config, out_tlog=tlog, sinks=opened.sinks)
     bar = _Progress(reader.size, enabled=progress)
+    _settle_heap()
     report = RunReport(pipeline, 0.0, source=str(path), outputs=outputs)
     heartbeat_period = 1.0 / config.output.heartbeat_rate if config.output.heartbeat_rate else 0.0
     next_heartbeat_us = 0
@@ -283,6 +298,7 @@ async def _serve(
         links[0],
         "".join(f", sending to {link}" for link in links[1:]),
     )
+    _settle_heap()
     if ready is not None:
         ready.set()
     if config.output.heartbeat_rate > 0:

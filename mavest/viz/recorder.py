@@ -134,7 +134,7 @@ class RerunRecorder:
     def for_viewer(cls, recording: rr.RecordingStream, live: bool) -> RerunRecorder:
         """Batches of 0.25 s for a live viewer (it should feel live), 2 s for a file only
         (bigger chunks cost less to encode)."""
-        return cls(recording, batch_seconds=0.25 if live else 2.0)
+        return cls(recording, batch_rows=4096, batch_seconds=0.25 if live else 2.0)
 
     # ------------------------------------------------------------ sink interface
 
