@@ -134,8 +134,8 @@ def _settle_heap() -> None:
 
     A full collection walks every tracked object, and numba, numpy and rerun leave
     hundreds of thousands of them; the Rerun recorder holds each batch's estimates
-    for a moment, which makes full collections frequent. Frozen, they cost nothing:
-    the recording's share of the CPU time went from ~15 % to ~2 % (tools/service_bench.py).
+    for a moment, which makes full collections frequent. Frozen, those objects are
+    no longer walked (see the README's known limits for what the recorder still costs).
     """
     gc.collect()
     gc.freeze()
