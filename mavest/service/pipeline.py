@@ -128,7 +128,6 @@ class Vehicle:
     fixed_wing: bool = False  # from HEARTBEAT.type
     airspeed: float = math.nan  # m/s, from VFR_HUD
     airspeed_t: float = -math.inf  # vehicle time it arrived at
-    airspeed_rate: float = 0.0  # m/s², its smoothed derivative
 
 
 class Pipeline:
@@ -203,12 +202,9 @@ class Pipeline:
                 )
         elif name == "VFR_HUD":
             vehicle = self.vehicles.get((system, component))
-            if (
-                vehicle is not None
-                and vehicle.last_t is not None
-                and math.isfinite(message.airspeed)
-            ):
-                vehicle.airspeed = float(message.airspeed)
+            airspeed = float(message.airspeed)
+            if vehicle is not None and vehicle.last_t is not None and 0.0 <= airspeed < 400.0:
+                vehicle.airspeed = airspeed  # (NaN fails the range test)
                 vehicle.airspeed_t = vehicle.last_t
         elif name == "HEARTBEAT":
             if system in self.config.input.ignore_systems:
@@ -341,9 +337,7 @@ class Pipeline:
             stats.gaps += 1
         vehicle = self.vehicles[(sample.stream.system, sample.stream.component)]
         if self._corrects_centripetal(vehicle, t):
-            accel = _without_centripetal(
-                accel, gyro, stream.estimator.bias, vehicle.airspeed, vehicle.airspeed_rate
-            )
+            accel = _without_centripetal(accel, gyro, stream.estimator.bias, vehicle.airspeed)
         estimate = stream.estimator.update(t, gyro, accel)
         flags = estimate.flags
         if flags & StepFlags.SKIPPED:
@@ -490,43 +484,24 @@ _FIXED_WING_TYPES = frozenset(
 )
 
 
-AIRSPEED_RATE_TIME = 1.0  # s: smoothing of the airspeed's derivative
-
-
-def _take_airspeed(vehicle: Vehicle, airspeed: float, t: float) -> None:
-    """A VFR_HUD airspeed: keep it, and the smoothed rate it changes at."""
-    if not (math.isfinite(airspeed) and 0.0 <= airspeed < 400.0):
-        return
-    dt = t - vehicle.airspeed_t
-    if 0.0 < dt <= AIRSPEED_MAX_AGE:
-        w = min(dt / AIRSPEED_RATE_TIME, 1.0)
-        rate = (airspeed - vehicle.airspeed) / dt
-        vehicle.airspeed_rate += w * (rate - vehicle.airspeed_rate)
-    elif dt > AIRSPEED_MAX_AGE:
-        vehicle.airspeed_rate = 0.0
-    if dt != 0.0:
-        vehicle.airspeed = airspeed
-        vehicle.airspeed_t = t
-
-
 def _without_centripetal(
     accel: tuple[float, float, float],
     gyro: tuple[float, float, float],
     bias: Any,
     airspeed: float,
-    airspeed_rate: float,
 ) -> tuple[float, float, float]:
-    """The specific force less the acceleration of flight along the body x axis.
+    """The specific force less the centripetal acceleration of flight along body x.
 
     A fixed wing in a steady coordinated turn feels its load factor straight
     down the body z axis: the accelerometer alone says "level" at any bank
     (22° RMS tilt error on the JSBSim flight, for VQF as for mavest). With
-    v ≈ (V, 0, 0) in the body frame, a = v̇ + ω × v ≈ (V̇, ω_z V, −ω_y V);
-    removing it leaves gravity (ArduPilot's DCM does the same with its airspeed).
+    v ≈ (V, 0, 0) in the body frame, a = v̇ + ω × v and ω × v = (0, ω_z V, −ω_y V);
+    removing it leaves gravity and v̇ (ArduPilot's DCM does the same with its
+    airspeed). v̇ (speed changes, sideslip, gusts) stays: see the README's limits.
     """
     wy = gyro[1] - bias[1]
     wz = gyro[2] - bias[2]
-    return (accel[0] - airspeed_rate, accel[1] - wz * airspeed, accel[2] + wy * airspeed)
+    return (accel[0], accel[1] - wz * airspeed, accel[2] + wy * airspeed)
 
 
 def _plausible(v: tuple[float, float, float], limit: float) -> bool:
