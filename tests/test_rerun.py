@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import os
-import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -21,6 +19,7 @@ from pymavlink import mavutil
 from rerun.chunk import RrdReader
 
 from mavest.cli import main
+from mavest.service.process import ServiceProcess, free_port
 from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
 from mavest.viz.viewer import rerun_binary
 
@@ -162,12 +161,6 @@ def test_recording_is_valid_and_carries_its_layout(recorded: dict[str, Path]) ->
 # ------------------------------------------------------------------ viewer modes
 
 
-def _free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def _listening_addresses(port: int) -> set[str]:
     """Local addresses with a TCP socket listening on ``port`` (from /proc/net/tcp{,6})."""
     found = set()
@@ -181,37 +174,10 @@ def _listening_addresses(port: int) -> set[str]:
     return found
 
 
-class _Service:
-    def __init__(self, *arguments: str, environment: dict[str, str] | None = None) -> None:
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "mavest.cli", "run", *arguments],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=environment,
-        )
-        self.log: list[str] = []
-        self._ready = threading.Event()
-        threading.Thread(target=self._read, daemon=True).start()
-        assert self._ready.wait(180), "".join(self.log)
-
-    def _read(self) -> None:
-        assert self.process.stderr is not None
-        for line in self.process.stderr:
-            self.log.append(line)
-            if line.startswith("mavest: listening on"):
-                self._ready.set()
-
-    def stop(self) -> int:
-        self.process.send_signal(signal.SIGINT)
-        self.process.communicate(timeout=60)
-        return self.process.returncode
-
-
 def test_served_viewer_listens_on_this_machine_only(tmp_path: Path) -> None:
-    grpc, web, udp = _free_port(), _free_port(), _free_port(socket.SOCK_DGRAM)
+    grpc, web, udp = free_port(), free_port(), free_port(socket.SOCK_DGRAM)
     rrd = tmp_path / "served.rrd"
-    service = _Service(
+    service = ServiceProcess(
         f"udpin:127.0.0.1:{udp}",
         "--rerun",
         "serve",
@@ -230,7 +196,7 @@ def test_served_viewer_listens_on_this_machine_only(tmp_path: Path) -> None:
         report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{udp}", 100.0, seconds=3.0))
         assert report.answered_fraction >= 0.99
     finally:
-        assert service.stop() == 0
+        assert service.stop()[0] == 0
     assert not _listening_addresses(grpc)  # the served viewer went with the service
     series = _scalars(rrd)
     assert len(series[f"{ROOT}/attitude/roll/mavest"][0]) == report.answered
@@ -262,7 +228,7 @@ def test_a_viewer_that_cannot_start_is_reported_and_estimation_goes_on(
 def test_a_viewer_that_goes_away_does_not_stop_the_service() -> None:
     binary = rerun_binary()
     assert binary is not None
-    grpc, udp = _free_port(), _free_port(socket.SOCK_DGRAM)
+    grpc, udp = free_port(), free_port(socket.SOCK_DGRAM)
     proxy = subprocess.Popen(
         [binary, "--serve-grpc", "--bind", "127.0.0.1", "--port", str(grpc)],
         stdout=subprocess.DEVNULL,
@@ -272,7 +238,7 @@ def test_a_viewer_that_goes_away_does_not_stop_the_service() -> None:
     while not _listening_addresses(grpc):
         assert time.monotonic() < deadline, "rerun --serve-grpc did not start"
         time.sleep(0.1)
-    service = _Service(
+    service = ServiceProcess(
         f"udpin:127.0.0.1:{udp}", "--rerun", f"connect=rerun+http://127.0.0.1:{grpc}/proxy"
     )
 
@@ -286,7 +252,7 @@ def test_a_viewer_that_goes_away_does_not_stop_the_service() -> None:
 
     report = asyncio.run(fly_and_kill())
     proxy.wait(10)
-    assert service.stop() == 0
+    assert service.stop()[0] == 0
     assert report.answered_fraction >= 0.99, report.describe()  # type: ignore[attr-defined]
     log = "".join(service.log)
     assert "Traceback" not in log

@@ -9,7 +9,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -20,23 +19,17 @@ from pymavlink import mavutil
 from mavest.cli import main
 from mavest.datasets import data_root
 from mavest.service.config import ServiceConfig
+from mavest.service.process import ServiceProcess, free_port
 from mavest.service.runners import Outputs, replay
 from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
 from mavest.viz.viewer import rerun_binary
 
 PROJECT = Path(__file__).resolve().parents[1]
-MAVEST = [sys.executable, "-m", "mavest.cli"]
 
 # Tilt error the estimator reaches on the turning JSBSim flight with the airspeed
 # correction (1.6–3.4° RMS over seeds; 18–22° without it, VQF alike). The issue's 1°
 # needs velocity aiding with a heading reference: see the README's known limits.
 TURNING_FLIGHT_TILT_BOUND = 4.0  # deg
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _messages(path: Path) -> list:
@@ -140,41 +133,10 @@ def test_replay_mistakes_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixt
 # ------------------------------------------------------------------ live
 
 
-class _Service:
-    """`mavest run` as a subprocess, as a user starts it."""
-
-    def __init__(self, *arguments: str) -> None:
-        self.process = subprocess.Popen(
-            [*MAVEST, "run", *arguments],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=PROJECT,
-        )
-        self.log: list[str] = []
-        self._ready = threading.Event()
-        threading.Thread(target=self._read_log, daemon=True).start()
-        if not self._ready.wait(180):  # a cold numba cache compiles first
-            self.process.kill()
-            raise AssertionError("mavest run did not start: " + "".join(self.log))
-
-    def _read_log(self) -> None:
-        assert self.process.stderr is not None
-        for line in self.process.stderr:
-            self.log.append(line)
-            if line.startswith("mavest: listening on"):
-                self._ready.set()
-
-    def stop(self) -> tuple[int, str]:
-        self.process.send_signal(signal.SIGINT)
-        out, _ = self.process.communicate(timeout=30)
-        return self.process.returncode, out
-
-
 def test_live_loopback_udp_500hz(tmp_path: Path) -> None:
-    port = _free_udp_port()
+    port = free_port(socket.SOCK_DGRAM)
     live_tlog, live_rrd = tmp_path / "live.tlog", tmp_path / "live.rrd"
-    service = _Service(
+    service = ServiceProcess(
         f"udpin:127.0.0.1:{port}", "--out-tlog", str(live_tlog), "--rrd", str(live_rrd)
     )
     report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{port}", 500.0, seed=2, seconds=25.0))
@@ -199,8 +161,8 @@ def test_live_loopback_udp_500hz(tmp_path: Path) -> None:
 
 
 def test_live_asks_for_the_imu_rate_and_the_vehicle_obeys(tmp_path: Path) -> None:
-    port = _free_udp_port()
-    service = _Service(f"udpin:127.0.0.1:{port}", "--request-rate", "250")
+    port = free_port(socket.SOCK_DGRAM)
+    service = ServiceProcess(f"udpin:127.0.0.1:{port}", "--request-rate", "250")
     report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{port}", 50.0, seed=1, seconds=6.0))
     code, _ = service.stop()
     assert code == 0
@@ -235,7 +197,7 @@ def mavproxy() -> Path:
 
 
 def test_mavproxy_logs_mavests_attitude(mavproxy: Path, tmp_path: Path) -> None:
-    proxy_port, service_port = _free_udp_port(), _free_udp_port()
+    proxy_port, service_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     proxy_log = tmp_path / "mavproxy.tlog"
     home = tmp_path / "home"
     home.mkdir()
@@ -259,7 +221,7 @@ def test_mavproxy_logs_mavests_attitude(mavproxy: Path, tmp_path: Path) -> None:
         while not proxy_log.exists():  # created once MAVProxy listens
             assert proxy.poll() is None and time.monotonic() < deadline, "MAVProxy did not start"
             time.sleep(0.1)
-        service = _Service(
+        service = ServiceProcess(
             f"udpin:127.0.0.1:{service_port}", "--out", f"udpout:127.0.0.1:{proxy_port}"
         )
         report = asyncio.run(

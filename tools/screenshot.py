@@ -15,13 +15,13 @@ from __future__ import annotations
 import argparse
 import glob
 import os
-import socket
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from mavest.service.process import free_port
 from mavest.viz.viewer import rerun_binary
 
 
@@ -49,7 +49,7 @@ def render(rrd: Path, png: Path, size: str = "1600x1000", timeout: float = 120.0
         raise ScreenshotError(f"{rrd} is not a valid recording: {verify.stderr.strip()}")
     png.parent.mkdir(parents=True, exist_ok=True)
     png.unlink(missing_ok=True)
-    port = _free_tcp_port()
+    port = free_port()
     with tempfile.TemporaryDirectory() as runtime:
         environment = {
             **os.environ,
@@ -83,12 +83,6 @@ def render(rrd: Path, png: Path, size: str = "1600x1000", timeout: float = 120.0
     if not png.exists():
         raise ScreenshotError("the viewer made no picture")
     return png
-
-
-def _free_tcp_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _screenshot(url: str, rrd: Path, png: Path, timeout: float) -> None:

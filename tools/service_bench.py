@@ -19,51 +19,24 @@ import asyncio
 import os
 import socket
 import subprocess
-import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 from pymavlink import mavutil
 
+from mavest.service.process import MAVEST, ServiceProcess, free_port
 from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
-
-MAVEST = [sys.executable, "-m", "mavest.cli"]
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def live(seconds: float, rate: float) -> dict[str, float]:
-    port = _free_udp_port()
-    process = subprocess.Popen(
-        [*MAVEST, "run", f"udpin:127.0.0.1:{port}"],
-        stderr=subprocess.PIPE,
-        stdout=subprocess.DEVNULL,
-        text=True,
-    )
-    ready = threading.Event()
-
-    def watch() -> None:
-        assert process.stderr is not None
-        for line in process.stderr:
-            if "listening" in line:
-                ready.set()
-
-    threading.Thread(target=watch, daemon=True).start()
-    if not ready.wait(180):  # a cold numba cache compiles first
-        process.kill()
-        raise SystemExit("mavest run did not start")
+    port = free_port(socket.SOCK_DGRAM)
+    service = ServiceProcess(f"udpin:127.0.0.1:{port}")
     try:
         report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{port}", rate, seconds=seconds))
     finally:
-        process.send_signal(2)
-        process.wait(30)
+        service.stop()
     return {
         "sent": report.sent,
         "answered %": 100.0 * report.answered_fraction,

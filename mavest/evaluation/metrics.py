@@ -150,14 +150,14 @@ def signed_heading_error(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
     return 2.0 * np.arctan2(sign * e[..., 3], np.abs(e[..., 0]))
 
 
-def _wrap(angle: np.ndarray | float) -> np.ndarray:
+def wrap_angles(angle: np.ndarray | float) -> np.ndarray:
     """Wrap angles to [−π, π)."""
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def _heading_rms(psi: np.ndarray, delta: float) -> float:
     """RMS heading error after turning the estimate by δ about world z."""
-    return float(np.sqrt(np.mean(_wrap(psi + delta) ** 2)))
+    return float(np.sqrt(np.mean(wrap_angles(psi + delta) ** 2)))
 
 
 def heading_offset(q_est: np.ndarray, q_true: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -177,14 +177,14 @@ def heading_offset(q_est: np.ndarray, q_true: np.ndarray, mask: np.ndarray | Non
     if psi.size == 0:
         return 0.0
     centre = float(np.arctan2(np.mean(np.sin(psi)), np.mean(np.cos(psi))))
-    candidates = [0.0, float(_wrap(-(centre + np.mean(_wrap(psi - centre)))))]
+    candidates = [0.0, float(wrap_angles(-(centre + np.mean(wrap_angles(psi - centre)))))]
     search = minimize_scalar(
         lambda d: _heading_rms(psi, d),
         bounds=(candidates[1] - 0.2, candidates[1] + 0.2),
         method="bounded",
         options={"xatol": 1e-10},
     )
-    candidates.append(float(_wrap(search.x)))
+    candidates.append(float(wrap_angles(search.x)))
     return min(candidates, key=lambda d: _heading_rms(psi, d))
 
 

@@ -16,7 +16,8 @@ from dataclasses import dataclass
 Euler = tuple[float, float, float]
 
 
-def _wrap(angle: float) -> float:
+def wrap_angle(angle: float) -> float:
+    """An angle in [−π, π) (plain floats: this runs per message)."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
@@ -110,17 +111,17 @@ class EulerComparison:
                 return
             w = (t - t0) / (t1 - t0)
             estimate = (
-                e0[0] + w * _wrap(e1[0] - e0[0]),
+                e0[0] + w * wrap_angle(e1[0] - e0[0]),
                 e0[1] + w * (e1[1] - e0[1]),
-                e0[2] + w * _wrap(e1[2] - e0[2]),
+                e0[2] + w * wrap_angle(e1[2] - e0[2]),
             )
         if t - self._start < self.settle_time:
             return
         sums = self._sums
-        sums[0] += _wrap(estimate[0] - reference[0]) ** 2
+        sums[0] += wrap_angle(estimate[0] - reference[0]) ** 2
         sums[1] += (estimate[1] - reference[1]) ** 2
         sums[2] += inclination_error(estimate, reference) ** 2
-        sums[3] += _wrap(estimate[2] - reference[2]) ** 2
+        sums[3] += wrap_angle(estimate[2] - reference[2]) ** 2
         self.count += 1
 
     def result(self) -> ComparisonResult:

@@ -10,7 +10,7 @@ Every link hands received bytes, with the peer they came from, to one callback;
 the pipeline parses them (one parser per peer, so that byte streams from
 different peers never interleave inside a packet). Sending never blocks: a
 link that cannot send right now (no peer yet, TCP reconnecting) drops the
-packet and counts it.
+packet.
 """
 
 from __future__ import annotations
@@ -86,9 +86,6 @@ class Link:
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
-        self.bytes_in = 0
-        self.bytes_out = 0
-        self.packets_dropped = 0  # could not be sent (no peer, reconnecting, buffer full)
         self._receiver: Receiver | None = None
 
     def __str__(self) -> str:
@@ -104,7 +101,6 @@ class Link:
         """Release the connection (idempotent)."""
 
     def _deliver(self, data: bytes, peer: Any) -> None:
-        self.bytes_in += len(data)
         if self._receiver is not None:
             self._receiver(self, data, peer)
 
@@ -131,10 +127,6 @@ class UdpLink(Link):
         self._peers: dict[Any, float] = {}
         self._warned_unreachable = False
 
-    @property
-    def peers(self) -> list[Any]:
-        return list(self._peers)
-
     async def start(self, receiver: Receiver) -> None:
         await super().start(receiver)
         loop = asyncio.get_running_loop()
@@ -156,12 +148,6 @@ class UdpLink(Link):
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
 
-    @property
-    def local_address(self) -> tuple[str, int] | None:
-        if self._transport is None:
-            return None
-        return self._transport.get_extra_info("sockname")  # type: ignore[no-any-return]
-
     def _on_datagram(self, data: bytes, addr: Any) -> None:
         if self.endpoint.kind == "udpin":
             self._peers[addr] = time.monotonic()
@@ -175,14 +161,9 @@ class UdpLink(Link):
     def send(self, packet: bytes) -> None:
         transport = self._transport
         if transport is None or transport.is_closing():
-            self.packets_dropped += 1
             return
         if self.endpoint.kind == "udpout":
             transport.sendto(packet)
-            self.bytes_out += len(packet)
-            return
-        if not self._peers:
-            self.packets_dropped += 1
             return
         now = time.monotonic()
         for addr, seen in list(self._peers.items()):
@@ -190,7 +171,6 @@ class UdpLink(Link):
                 del self._peers[addr]
                 continue
             transport.sendto(packet, addr)
-            self.bytes_out += len(packet)
 
     def close(self) -> None:
         if self._transport is not None:
@@ -205,7 +185,6 @@ class TcpClientLink(Link):
         self.max_backoff = max_backoff
         self._writer: asyncio.StreamWriter | None = None
         self._task: asyncio.Task[None] | None = None
-        self.connected = asyncio.Event()
 
     async def start(self, receiver: Receiver) -> None:
         await super().start(receiver)
@@ -234,14 +213,12 @@ class TcpClientLink(Link):
             said_waiting = False
             backoff = 0.25
             self._writer = writer
-            self.connected.set()
             peer = writer.get_extra_info("peername")
             try:
                 while data := await reader.read(65536):
                     self._deliver(data, peer)
             except OSError:
                 pass
-            self.connected.clear()
             self._writer = None
             writer.close()
             log.warning("%s: connection lost; reconnecting", self.endpoint)
@@ -249,10 +226,8 @@ class TcpClientLink(Link):
     def send(self, packet: bytes) -> None:
         writer = self._writer
         if writer is None or writer.is_closing():
-            self.packets_dropped += 1
             return
         writer.write(packet)
-        self.bytes_out += len(packet)
 
     def close(self) -> None:
         if self._task is not None:
@@ -295,13 +270,9 @@ class TcpServerLink(Link):
             log.info("%s: client %s left", self.endpoint, peer)
 
     def send(self, packet: bytes) -> None:
-        if not self._clients:
-            self.packets_dropped += 1
-            return
         for writer in list(self._clients):
             if not writer.is_closing():
                 writer.write(packet)
-                self.bytes_out += len(packet)
 
     def close(self) -> None:
         for writer in list(self._clients):
@@ -339,13 +310,9 @@ class SerialLink(Link):
 
     def send(self, packet: bytes) -> None:
         if self._port is None or not self._port.is_open:
-            self.packets_dropped += 1
             return
-        try:
+        with contextlib.suppress(Exception):  # the device went away: dropped, as documented
             self._port.write(packet)
-            self.bytes_out += len(packet)
-        except Exception:
-            self.packets_dropped += 1
 
     def close(self) -> None:
         if self._port is not None and self._port.is_open:

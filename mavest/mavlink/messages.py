@@ -156,10 +156,6 @@ def decode_imu(message: Any) -> ImuSample | None:
     )
 
 
-def is_imu_message(name: str) -> bool:
-    return name in IMU_FORMATS
-
-
 class Encoder:
     """mavest's outgoing messages, as MAVLink 2 packets from its own system and component."""
 

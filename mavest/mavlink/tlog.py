@@ -56,10 +56,9 @@ def _packet_length(buffer: bytes | memoryview, start: int) -> int:
 
 @dataclass
 class TlogStats:
-    """What reading a tlog found: records, decoded messages and damage."""
+    """What reading a tlog found: records and damage."""
 
     records: int = 0
-    decoded: int = 0
     bad_crc: int = 0  # a decode was attempted and the packet was damaged
     skipped_bytes: int = 0  # garbage between records, resynchronised past
     truncated_bytes: int = 0  # a record cut off at the end of the file
@@ -182,8 +181,6 @@ class TlogReader:
                     stats.skipped_bytes += resumed - position
                     position = resumed
                     continue
-                else:
-                    stats.decoded += 1
             stats.records += 1
             last_us = stamp
             position = end

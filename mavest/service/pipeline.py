@@ -104,7 +104,6 @@ class Stream:
     stats: StreamStats = field(default_factory=StreamStats)
     primary: bool = False
     next_output: float = -math.inf
-    last_t: float = 0.0
     vs_autopilot: EulerComparison = field(default_factory=EulerComparison)
     vs_truth: EulerComparison = field(default_factory=EulerComparison)
 
@@ -152,7 +151,6 @@ class Pipeline:
         self._parsers: dict[tuple[int, Any], Any] = {}
         self.messages_in = 0
         self.bad_packets = 0
-        self.ignored = 0  # IMU messages from systems not followed (ground stations)
         self.sent = 0
         self._record_us = 0  # timestamp for records written now
         self._not_followed: set[StreamKey] = set()
@@ -210,9 +208,7 @@ class Pipeline:
             if system in self.config.input.ignore_systems:
                 return
             if message.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:
-                vehicle = self.vehicles.get((system, component))
-                if vehicle is None:
-                    vehicle = self.vehicles[(system, component)] = Vehicle(system, component)
+                vehicle = self._vehicle(system, component)
                 vehicle.autopilot = message.autopilot
                 vehicle.fixed_wing = message.type in _FIXED_WING_TYPES
         elif name == "COMMAND_ACK" and message.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -230,6 +226,13 @@ class Pipeline:
             return False
         return output.system_id in (0, system)
 
+    def _vehicle(self, system: int, component: int) -> Vehicle:
+        """The vehicle (system, component), known from now on."""
+        vehicle = self.vehicles.get((system, component))
+        if vehicle is None:
+            vehicle = self.vehicles[(system, component)] = Vehicle(system, component)
+        return vehicle
+
     def _any_vehicle(self, system: int) -> Vehicle | None:
         for vehicle in self.vehicles.values():
             if vehicle.system == system and vehicle.primary is not None:
@@ -245,7 +248,6 @@ class Pipeline:
     def _on_imu(self, message: Any, system: int, component: int) -> None:
         start = time.perf_counter()
         if not self._follows(system):
-            self.ignored += 1
             return
         sample = decode_imu(message)
         if sample is None:  # HIGHRES_IMU without fresh gyro and accelerometer
@@ -263,11 +265,7 @@ class Pipeline:
     def _new_stream(self, key: StreamKey) -> Stream | None:
         """A stream seen for the first time: follow it if the configuration selects it."""
         wanted = self.config.input
-        vehicle = self.vehicles.get((key.system, key.component))
-        if vehicle is None:
-            vehicle = self.vehicles[(key.system, key.component)] = Vehicle(
-                key.system, key.component
-            )
+        vehicle = self._vehicle(key.system, key.component)
         if wanted.imu not in ("auto", "all") and key.message != wanted.imu:
             return None
         if wanted.imu_instance >= 0 and key.instance != wanted.imu_instance:
@@ -323,7 +321,7 @@ class Pipeline:
             log.warning(
                 "%s: time went back from %.3f s to %.3f s (a reboot?): re-initialising",
                 stream.key,
-                stream.last_t,
+                stats.last_t or 0.0,
                 t,
             )
             stream.estimator.reset()
@@ -350,7 +348,6 @@ class Pipeline:
         if stats.first_t is None:
             stats.first_t = t
         stats.last_t = t
-        stream.last_t = t
         vehicle.last_t = t
         euler = estimate.euler
         euler_tuple = (float(euler[0]), float(euler[1]), float(euler[2]))
@@ -404,7 +401,8 @@ class Pipeline:
         if source == "truth":
             stream.vs_truth.add_reference(t, euler)
         else:
-            if t < stream.last_t - 60.0:  # the autopilot's clock restarted before the IMU's
+            last_t = stream.stats.last_t
+            if last_t is not None and t < last_t - 60.0:  # the autopilot restarted before the IMU
                 return
             stream.vs_autopilot.add_reference(t, euler)
         for sink in self.sinks:

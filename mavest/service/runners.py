@@ -195,10 +195,8 @@ async def replay(
     next_heartbeat_us = 0
     first_us: int | None = None
     start = time.perf_counter()
-    records = 0
     try:
         for record in reader:
-            records += 1
             stamp = record.timestamp_us
             if tlog is not None:
                 tlog.write(stamp, record.packet)
@@ -207,7 +205,7 @@ async def replay(
             if heartbeat_period and stamp >= next_heartbeat_us and pipeline.vehicles:
                 pipeline.heartbeat()
                 next_heartbeat_us = stamp + int(heartbeat_period * 1e6)
-            if records % 256 == 0:
+            if reader.stats.records % 256 == 0:
                 bar.update(reader.position, _estimated(pipeline))
                 if speed:
                     if first_us is None:
@@ -223,7 +221,7 @@ async def replay(
         bar.finish()
         opened.close()
     report.elapsed = time.perf_counter() - start
-    report.records = records
+    report.records = reader.stats.records
     report.bad_records = reader.stats.bad_crc
     report.skipped_bytes = reader.stats.skipped_bytes + reader.stats.truncated_bytes
     return report

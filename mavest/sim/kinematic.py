@@ -174,7 +174,7 @@ def _integrate(q0: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
 
 
 @kernel
-def _rotate_to_body(q: np.ndarray, v_world: np.ndarray) -> np.ndarray:
+def rotate_to_body(q: np.ndarray, v_world: np.ndarray) -> np.ndarray:
     """R(q[i])ᵀ v_world[i] for each i."""
     out = np.empty_like(v_world)
     R = np.empty((3, 3))
@@ -222,6 +222,6 @@ def simulate(
     linear = _bursts(t, rng, motion)
     linear[1:] += np.diff(velocity, axis=0) / np.diff(t)[:, None]  # held over each sample
     specific_force_world = linear - np.array([0.0, 0.0, gravity])
-    accel = _rotate_to_body(q, specific_force_world)
+    accel = rotate_to_body(q, specific_force_world)
     accel += rng.normal(0.0, noise.accel_noise_density / math.sqrt(dt), (n, 3))
     return SimulatedImu(t, gyro, accel, q, bias, linear, velocity, noise)

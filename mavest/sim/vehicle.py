@@ -30,11 +30,13 @@ from typing import Any
 import numpy as np
 
 from mavest import so3
+from mavest.evaluation.online import wrap_angle
 from mavest.mavlink.links import Link, make_link, parse_endpoint
 from mavest.mavlink.messages import IMU_FORMATS, MAVLink, mavlink2
 from mavest.mavlink.tlog import TlogWriter
 from mavest.service.signals import stop_on_signals
 from mavest.sim.flight import Flight, FlightModel, ImuErrors, NoisyImu
+from mavest.sim.kinematic import rotate_to_body
 
 log = logging.getLogger("mavest")
 
@@ -107,10 +109,10 @@ class VehicleEncoder:
             round(lon * 1e7),
         ).pack(self._mav)
 
-    def vfr_hud(self, flight: Flight, i: int) -> bytes:
+    def vfr_hud(self, flight: Flight, i: int, yaw: float) -> bytes:
         """Airspeed and the rest of the head-up display, as autopilots send it (~10 Hz)."""
         velocity = flight.velocity[i]
-        heading = math.degrees(so3.euler_zyx_from_quat(flight.q_true[i])[2]) % 360.0
+        heading = math.degrees(yaw) % 360.0
         return self._mav.vfr_hud_encode(
             float(flight.airspeed[i]),
             float(math.hypot(velocity[0], velocity[1])),
@@ -143,10 +145,7 @@ def _int16(values: np.ndarray) -> list[int]:
 
 def _magnetometer(q_true: np.ndarray) -> np.ndarray:
     """The Earth's field in the body frame (µT) for (N, 4) attitudes."""
-    field_body = np.empty((len(q_true), 3))
-    for i, q in enumerate(q_true):
-        field_body[i] = so3.matrix_from_quat(q).T @ EARTH_FIELD_NED
-    return field_body
+    return rotate_to_body(q_true, np.broadcast_to(EARTH_FIELD_NED, (len(q_true), 3)).copy())
 
 
 # --------------------------------------------------------------------------
@@ -195,7 +194,7 @@ def write_flight_tlog(
                     ),
                 )
                 if t >= next_hud:
-                    tlog.write(stamp, encoder.vfr_hud(flight, i))
+                    tlog.write(stamp, encoder.vfr_hud(flight, i, euler[i, 2]))
                     next_hud += HUD_PERIOD
             samples += len(flight)
     return (
@@ -291,7 +290,7 @@ class StreamingVehicle:
         self._next_hud = 0.0
         # load the compiled rotation kernels now, not while the first samples are due
         identity = np.array([1.0, 0.0, 0.0, 0.0])
-        so3.matrix_from_quat(identity)
+        _magnetometer(identity[None])
         so3.euler_zyx_from_quat(identity)
 
     # ------------------------------------------------------------ receiving
@@ -324,7 +323,7 @@ class StreamingVehicle:
         sent_at, roll, pitch, t = sent
         self._latencies.append(now - sent_at)
         if t >= self.settle_time:
-            self._squares[0] += _wrap(message.roll - roll) ** 2
+            self._squares[0] += wrap_angle(message.roll - roll) ** 2
             self._squares[1] += (message.pitch - pitch) ** 2
             self.report.scored += 1
 
@@ -377,9 +376,8 @@ class StreamingVehicle:
     def _send_sample(
         self, flight: Flight, i: int, t: float, gyro: np.ndarray, accel: np.ndarray
     ) -> None:
-        q = flight.q_true[i]
-        euler = so3.euler_zyx_from_quat(q)
-        mag = so3.matrix_from_quat(q).T @ EARTH_FIELD_NED
+        euler = so3.euler_zyx_from_quat(flight.q_true[i])
+        mag = _magnetometer(flight.q_true[i : i + 1])[0]
         t_boot = t + BOOT_OFFSET
         key = math.floor(t_boot * 1000.0 + 1e-6)
         packet = self.encoder.imu(t_boot, gyro, accel, mag)
@@ -393,7 +391,7 @@ class StreamingVehicle:
         self.link.send(packet)
         self.link.send(truth)
         if t >= self._next_hud:
-            self.link.send(self.encoder.vfr_hud(flight, i))
+            self.link.send(self.encoder.vfr_hud(flight, i, euler[2]))
             self._next_hud = t + HUD_PERIOD
         self.report.sent += 1
 
@@ -414,10 +412,6 @@ class StreamingVehicle:
             report.latency_p99_ms = float(np.percentile(latencies, 99))
             report.latency_max_ms = float(latencies.max())
         return report
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 async def stream_flight(

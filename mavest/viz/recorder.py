@@ -40,6 +40,7 @@ import rerun as rr
 
 from mavest import so3
 from mavest.estimator.layout import StepFlags
+from mavest.evaluation.metrics import wrap_angles
 
 VEHICLE_TIME = "vehicle_time"
 RECEIVE_TIME = "receive_time"
@@ -104,7 +105,6 @@ class _StreamBuffer:
     last_pose_t: dict[str, float] = field(default_factory=dict)  # body → last posed time
     last_slow_t: float = -math.inf  # last sample logged at the slow rate
     last_reference_t: dict[str, float] = field(default_factory=dict)  # source → time
-    rows_sent: int = 0
 
 
 class RerunRecorder:
@@ -128,7 +128,6 @@ class RerunRecorder:
         self.on_new_stream: list[Any] = []  # callbacks(root) when a stream appears
         self._last_key: Any = None
         self._last: _StreamBuffer | None = None
-        self.rows_written = 0
 
     @classmethod
     def for_viewer(cls, recording: rr.RecordingStream, live: bool) -> RerunRecorder:
@@ -295,11 +294,9 @@ class RerunRecorder:
             self._send(f"{root}/imu/gyro", t, rx, np.degrees(np.array(gyros)))
             self._send(f"{root}/imu/accel", t, rx, np.array(accels))
             if len(slow):
-                self._send_update(buffer.root, estimates, slow, t, rx)
+                self._send_update(root, estimates, slow, t, rx)
             self._send(f"{root}/timing/processing_us", t, rx, 1e6 * np.array(processing))
             self._send_poses(buffer, "mavest", t, estimates)
-            buffer.rows_sent += n
-            self.rows_written += n
         if n:
             buffer.anchor = (t[-1], *euler[-1])
         for source, references in buffer.references.items():
@@ -381,7 +378,7 @@ class RerunRecorder:
         unwrapped = np.unwrap(angles, axis=0)
         ours = np.column_stack([np.interp(at, times, unwrapped[:, i]) for i in range(3)])
         difference = ours - references[inside, 2:5]
-        difference[:, [0, 2]] = (difference[:, [0, 2]] + np.pi) % (2 * np.pi) - np.pi
+        difference[:, [0, 2]] = wrap_angles(difference[:, [0, 2]])
         for i, axis in enumerate(("roll", "pitch", "yaw")):
             self._send(
                 f"{buffer.root}/error/{axis}/vs_{source}",
@@ -418,10 +415,6 @@ class RerunRecorder:
     def close(self) -> None:
         """Send what is buffered (the recording stream itself is closed by its owner)."""
         self.flush()
-
-    @property
-    def roots(self) -> list[str]:
-        return [buffer.root for buffer in self._streams.values()]
 
 
 def _grid_samples(t: np.ndarray, period: float, last: float) -> np.ndarray:

@@ -152,9 +152,9 @@ class Viewer:
         except OSError as error:
             log.warning("cannot start the Rerun viewer: %s", error)
             return None
-        url = grpc_url(
-            "127.0.0.1" if request.bind in ("0.0.0.0", "::") else request.bind, request.grpc_port
-        )
+        # a viewer bound to every interface is still reached here through loopback
+        host = "127.0.0.1" if request.bind in ("0.0.0.0", "::") else request.bind
+        url = grpc_url(host, request.grpc_port)
         deadline = time.monotonic() + 10.0
         while not _reachable(url):
             if self.process.poll() is not None or time.monotonic() > deadline:
@@ -164,7 +164,6 @@ class Viewer:
                 return None
             time.sleep(0.05)
         if request.mode == "serve":
-            host = "127.0.0.1" if request.bind in ("0.0.0.0", "::") else request.bind
             log.info(
                 "Rerun web viewer: http://%s:%d/?url=%s (bound to %s only)",
                 host,

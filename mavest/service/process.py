@@ -1,0 +1,52 @@
+"""``mavest run`` as a separate process, as a user starts it: for the tests and the tools
+that measure the live service from outside (a loopback vehicle on the other end)."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import threading
+
+MAVEST = [sys.executable, "-m", "mavest.cli"]
+READY_LINE = "mavest: listening on"
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port on 127.0.0.1 free right now (TCP by default, ``SOCK_DGRAM`` for UDP)."""
+    with socket.socket(socket.AF_INET, kind) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+class ServiceProcess:
+    """Starts ``mavest run ARGUMENTS`` and returns once it listens; ``log`` collects its
+    standard error, :meth:`stop` sends SIGINT as Ctrl-C would."""
+
+    def __init__(self, *arguments: str, start_timeout: float = 180.0) -> None:
+        self.process = subprocess.Popen(
+            [*MAVEST, "run", *arguments],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.log: list[str] = []
+        self._ready = threading.Event()
+        threading.Thread(target=self._read_log, daemon=True).start()
+        if not self._ready.wait(start_timeout):  # a cold numba cache compiles first
+            self.process.kill()
+            raise RuntimeError("mavest run did not start: " + "".join(self.log))
+
+    def _read_log(self) -> None:
+        assert self.process.stderr is not None
+        for line in self.process.stderr:
+            self.log.append(line)
+            if line.startswith(READY_LINE):
+                self._ready.set()
+
+    def stop(self, timeout: float = 60.0) -> tuple[int, str]:
+        """Interrupt it; its exit code and what it printed (the summary)."""
+        self.process.send_signal(signal.SIGINT)
+        out, _ = self.process.communicate(timeout=timeout)
+        return self.process.returncode, out
