@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import logging
 import os
 import sys
@@ -26,6 +27,7 @@ from mavest._jit import cache_is_warm
 from mavest.estimator import ConfigError, estimate
 from mavest.mavlink.links import LinkError
 from mavest.mavlink.messages import IMU_MESSAGES
+from mavest.mavlink.signing import KEY_ENVIRONMENT_VARIABLE, Signing
 from mavest.mavlink.tlog import TlogError
 from mavest.service.config import ServiceConfig
 from mavest.service.runners import Outputs, replay, run_live
@@ -114,13 +116,27 @@ def _outputs(args: argparse.Namespace) -> Outputs:
     )
 
 
+def _signing(args: argparse.Namespace, config: ServiceConfig) -> Signing | None:
+    """The signing key and policy: --signing-key, else the environment, else the file."""
+    settings = config.signing
+    if args.require_signed:
+        settings = dataclasses.replace(settings, require_signed=True)
+    try:
+        return settings.resolve(os.environ, args.signing_key)
+    except ConfigError as error:
+        raise UsageError(str(error)) from None
+
+
 def _run(args: argparse.Namespace) -> int:
     config = _load_config(args)
+    signing = _signing(args, config)
     _say_compiling()
     outputs = _outputs(args)
     try:
         report = asyncio.run(
-            run_live(args.connection, config, tuple(args.out), outputs, baud=args.baud)
+            run_live(
+                args.connection, config, tuple(args.out), outputs, baud=args.baud, signing=signing
+            )
         )
     except (LinkError, TlogError, ViewerError) as error:
         raise UsageError(str(error)) from None
@@ -312,6 +328,30 @@ def _add_stream_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_signing_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group(
+        "MAVLink 2 signing",
+        "With a key, mavest signs everything it sends and drops signed input whose "
+        "signature or timestamp fails (a different key, a replay); unsigned input is "
+        "accepted unless --require-signed. Without a key, nothing is signed or checked.",
+    )
+    group.add_argument(
+        "--signing-key",
+        type=Path,
+        metavar="FILE",
+        help="the key: a file of 32 raw bytes (as ArduPilot stores it), or 64 hex digits, "
+        "or any other text as a passphrase, whose SHA-256 is the key (as MAVProxy's "
+        f"`signing setup PASSPHRASE`). Default: ${KEY_ENVIRONMENT_VARIABLE} (hex or "
+        "passphrase), else [signing] key_file of the config",
+    )
+    group.add_argument(
+        "--require-signed",
+        action="store_true",
+        default=None,
+        help="drop unsigned input (MAVLink 1 included); needs a key",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mavest",
@@ -351,6 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(MAV_CMD_SET_MESSAGE_INTERVAL; default: config, 0 = don't ask)",
     )
     _add_stream_options(run)
+    _add_signing_options(run)
     _add_common(run)
     run.set_defaults(handler=_run)
 

@@ -144,11 +144,20 @@ def test_default_is_consistent_and_the_classic_filter_is_not(scenario: str) -> N
     assert classic.anees > 2 * high, classic  # the heading-into-tilt trap of DESIGN.md
 
 
-def test_magnetometer_is_accepted_and_flagged_as_not_fused_yet() -> None:
+def test_magnetometer_online_equals_batch_and_nan_rows_mean_none() -> None:
     data = simulate(5.0, 100.0, seed=6)
-    with pytest.warns(UserWarning, match="not fused"):
-        out = estimate(data.t, data.gyro, data.accel, mag=np.ones_like(data.gyro))
-    assert np.all(np.isfinite(out.q))
+    mag = data.mag.copy()
+    mag[::3] = np.nan  # a magnetometer at a third of the IMU's rate... of sorts
+    batch = estimate(data.t, data.gyro, data.accel, mag=mag)
+    online = Estimator()
+    for i in range(len(data.t)):
+        row = None if np.isnan(mag[i, 0]) else mag[i]
+        e = online.update(data.t[i], data.gyro[i], data.accel[i], row)
+        assert e.mag_used == batch.mag_used[i]
+    np.testing.assert_array_equal(online.q, batch.q[-1])
+    assert online.heading_referenced
+    assert not np.any(batch.mag_used[::3])
+    assert np.all(np.isfinite(batch.q))
 
 
 def test_initialise_and_reset() -> None:

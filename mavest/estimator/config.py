@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - Python 3.10
@@ -115,6 +117,43 @@ class EstimatorConfig:
     rest_min_time: float = 1.5  # s the criteria must hold
     rest_rate_sigma: float = math.radians(0.01)  # rad/s of true rotation still allowed at rest
 
+    # Magnetometer (9-D): heading only, never tilt (mavest.estimator.magnetic).
+    # Input in µT. Heading noise as a density: an update Δt after the previous
+    # magnetometer sample has variance density²/Δt (so a 10 Hz and a 1 kHz
+    # magnetometer mean the same); the correction's time constant is about
+    # density/gyro_noise_density.
+    mag_heading_noise_density: float = 0.08  # rad·√s
+    # heading's σ when the field is trusted again after mag_max_rejection_time
+    mag_reopened_heading_sigma: float = math.radians(20.0)  # rad
+    # Calibration as ArduPilot names it: m = A (raw + COMPASS_OFS), A the symmetric
+    # matrix of COMPASS_DIA (diagonal) and COMPASS_ODI (off-diagonal: xy, xz, yz);
+    # COMPASS_DEC the declination (rad, east positive: yaw = magnetic heading + dec).
+    # ArduPilot's RAW_IMU already carries the calibrated field: set these only for
+    # an uncalibrated sensor. With compass_dec 0 the service takes the vehicle's own
+    # COMPASS_DEC when the link (or log) carries it.
+    compass_ofs: tuple[float, float, float] = (0.0, 0.0, 0.0)  # milligauss
+    compass_dia: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    compass_odi: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    compass_dec: float = 0.0  # rad
+    # Disturbance rejection: the reference field (norm and dip) is learned over
+    # the first mag_reference_time, then follows slowly (mag_reference_adapt_time)
+    # while undisturbed. A field off the reference by more than the tolerances,
+    # or whose heading innovation is beyond the χ² (1 dof) gate, is not used;
+    # a disturbed field steady for mag_new_reference_time becomes the reference
+    # (a new place, not a passing magnet); rejected for longer than
+    # mag_max_rejection_time, heading gets its initial uncertainty back and the
+    # field is used again.
+    mag_norm_tolerance: float = 0.1  # fraction of the reference norm
+    mag_dip_tolerance: float = math.radians(10.0)  # rad
+    mag_gate: float = 10.83  # χ² 1 dof, 99.9 %
+    mag_reference_time: float = 2.0  # s
+    mag_reference_adapt_time: float = 30.0  # s (0: never)
+    mag_new_reference_time: float = 20.0  # s
+    mag_max_rejection_time: float = 60.0  # s
+    # After a disturbance the field must be undisturbed this long before it is
+    # used again: a passing magnet's field crosses the tolerances on its way.
+    mag_recovery_time: float = 1.0  # s
+
     # Initial uncertainty (the first samples set tilt from the accelerometer).
     initial_tilt_sigma: float = math.radians(5.0)  # rad
     initial_heading_sigma: float = math.radians(5.0)  # rad, about the world vertical
@@ -147,6 +186,13 @@ class EstimatorConfig:
             "sigma_spread",
             "velocity_sigma",
             "velocity_time",
+            "mag_heading_noise_density",
+            "mag_reopened_heading_sigma",
+            "mag_norm_tolerance",
+            "mag_dip_tolerance",
+            "mag_reference_time",
+            "mag_new_reference_time",
+            "mag_max_rejection_time",
         ):
             value = getattr(self, name)
             _require(math.isfinite(value) and value > 0.0, f"{name} must be > 0, got {value}")
@@ -164,17 +210,33 @@ class EstimatorConfig:
             "rest_accel_threshold",
             "rest_min_time",
             "rest_rate_sigma",
+            "mag_recovery_time",
+            "mag_gate",
+            "mag_reference_adapt_time",
         ):
             value = getattr(self, name)
             _require(math.isfinite(value) and value >= 0.0, f"{name} must be ≥ 0, got {value}")
+        for name in ("initial_bias", "compass_ofs", "compass_dia", "compass_odi"):
+            value = getattr(self, name)
+            _require(
+                len(value) == 3 and all(math.isfinite(v) for v in value),
+                f"{name} must be three finite numbers",
+            )
+        _require(math.isfinite(self.compass_dec), "compass_dec must be finite (rad)")
         _require(
-            len(self.initial_bias) == 3 and all(math.isfinite(v) for v in self.initial_bias),
-            "initial_bias must be three finite numbers (rad/s)",
+            abs(float(np.linalg.det(self.soft_iron))) > 1e-6,
+            "compass_dia/compass_odi make a singular soft-iron matrix",
         )
 
     def replace(self, **changes: Any) -> EstimatorConfig:
         """A copy with some parameters changed (the config itself is immutable)."""
         return dataclasses.replace(self, **changes)
+
+    @property
+    def soft_iron(self) -> np.ndarray:
+        """ArduPilot's soft-iron matrix from COMPASS_DIA and COMPASS_ODI (symmetric)."""
+        (dx, dy, dz), (oxy, oxz, oyz) = self.compass_dia, self.compass_odi
+        return np.array([[dx, oxy, oxz], [oxy, dy, oyz], [oxz, oyz, dz]])
 
     @property
     def variant(self) -> str:
@@ -192,8 +254,9 @@ class EstimatorConfig:
                 f"known: {', '.join(sorted(known))}"
             )
         converted = dict(values)
-        if "initial_bias" in converted:
-            converted["initial_bias"] = tuple(float(v) for v in converted["initial_bias"])
+        for name in ("initial_bias", "compass_ofs", "compass_dia", "compass_odi"):
+            if name in converted:
+                converted[name] = tuple(float(v) for v in converted[name])
         try:
             return cls(**converted)
         except TypeError as error:  # wrong type of a value

@@ -9,10 +9,10 @@ world frame (left error) or body frame (right error).
 
 from __future__ import annotations
 
-import warnings
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -35,17 +35,34 @@ def _step_scalars(
     ax: float,
     ay: float,
     az: float,
-) -> tuple[float, float, bool, int, int, bool]:
+    mx: float,
+    my: float,
+    mz: float,
+) -> tuple[float, float, bool, int, int, bool, float, float, bool]:
     """One step; the sample comes as scalars, which cross into numba far faster than arrays."""
     s = state[0]
-    s.w_sample[0] = gx
-    s.w_sample[1] = gy
-    s.w_sample[2] = gz
-    s.w_sample[3] = ax
-    s.w_sample[4] = ay
-    s.w_sample[5] = az
-    step(s, coefficients[0], t, s.w_sample[:3], s.w_sample[3:])
-    return s.t, s.nis, s.accel_used != 0, s.flags, s.iterations, s.at_rest != 0
+    sample = s.w_sample
+    sample[0] = gx
+    sample[1] = gy
+    sample[2] = gz
+    sample[3] = ax
+    sample[4] = ay
+    sample[5] = az
+    sample[6] = mx
+    sample[7] = my
+    sample[8] = mz
+    step(s, coefficients[0], t, sample[:3], sample[3:6], sample[6:])
+    return (
+        s.t,
+        s.nis,
+        s.accel_used != 0,
+        s.flags,
+        s.iterations,
+        s.at_rest != 0,
+        s.heading_innovation,
+        s.heading_nis,
+        s.mag_used != 0,
+    )
 
 
 def _compiled_step(state: np.ndarray, coefficients: np.ndarray) -> Callable[..., tuple]:
@@ -56,7 +73,8 @@ def _compiled_step(state: np.ndarray, coefficients: np.ndarray) -> Callable[...,
     it is resolved once here. Falls back to the dispatcher if numba's layout
     differs (it is not a documented interface).
     """
-    _step_scalars(state.copy(), coefficients, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.8)  # compiles
+    nan = math.nan
+    _step_scalars(state.copy(), coefficients, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.8, nan, nan, nan)
     try:
         signature = next(iter(_step_scalars.overloads))
         return _step_scalars.overloads[signature].entry_point
@@ -71,6 +89,7 @@ def _run_batch(
     t: np.ndarray,
     gyro: np.ndarray,
     accel: np.ndarray,
+    mag: np.ndarray,
     out_q: np.ndarray,
     out_bias: np.ndarray,
     out_cov: np.ndarray,
@@ -80,11 +99,14 @@ def _run_batch(
     out_flags: np.ndarray,
     out_iterations: np.ndarray,
     out_at_rest: np.ndarray,
+    out_heading_innovation: np.ndarray,
+    out_heading_nis: np.ndarray,
+    out_mag_used: np.ndarray,
 ) -> None:
     s = state[0]
     c = coefficients[0]
     for i in range(t.shape[0]):
-        step(s, c, t[i], gyro[i], accel[i])
+        step(s, c, t[i], gyro[i], accel[i], mag[i])
         out_q[i] = s.q
         out_bias[i] = s.b
         out_cov[i] = s.P[:N_ERROR, :N_ERROR]
@@ -94,6 +116,9 @@ def _run_batch(
         out_flags[i] = s.flags
         out_iterations[i] = s.iterations
         out_at_rest[i] = s.at_rest != 0
+        out_heading_innovation[i] = s.heading_innovation
+        out_heading_nis[i] = s.heading_nis
+        out_mag_used[i] = s.mag_used != 0
 
 
 class Estimate(NamedTuple):
@@ -113,6 +138,9 @@ class Estimate(NamedTuple):
     flags: int  # StepFlags bits
     iterations: int
     at_rest: bool  # rest detected: the bias got a zero-rate update
+    heading_innovation: float  # magnetometer azimuth − declination, rad; NaN if none
+    heading_nis: float  # its normalised square (χ², 1 dof)
+    mag_used: bool  # the magnetometer corrected (or set) heading
 
     @property
     def euler(self) -> np.ndarray:
@@ -139,6 +167,9 @@ class EstimateSeries:
     flags: np.ndarray  # (N,) int
     iterations: np.ndarray  # (N,) int
     at_rest: np.ndarray  # (N,) bool
+    heading_innovation: np.ndarray  # (N,)
+    heading_nis: np.ndarray  # (N,)
+    mag_used: np.ndarray  # (N,) bool
 
     def __len__(self) -> int:
         return self.t.shape[0]
@@ -155,12 +186,18 @@ class EstimateSeries:
             int(self.flags[i]),
             int(self.iterations[i]),
             bool(self.at_rest[i]),
+            float(self.heading_innovation[i]),
+            float(self.heading_nis[i]),
+            bool(self.mag_used[i]),
         )
 
     @property
     def euler(self) -> np.ndarray:
         """(N, 3) roll, pitch, yaw in rad."""
         return so3.euler_zyx_from_quats(self.q)
+
+
+_NO_MAG = (math.nan, math.nan, math.nan)
 
 
 def _vector3(value: ArrayLike, name: str) -> np.ndarray:
@@ -200,7 +237,6 @@ class Estimator:
     def __init__(self, config: EstimatorConfig | None = None) -> None:
         self.config = config if config is not None else EstimatorConfig()
         self._coefficients = make_coefficients(self.config)
-        self._warned_mag = False
         self._bind(new_state(self._coefficients))
 
     def _bind(self, state: np.ndarray) -> None:
@@ -228,7 +264,8 @@ class Estimator:
         ``cov`` is the 6×6 covariance of [δθ, δb] with δθ in the *world* frame
         (R_true = Exp(δθ) R); it is converted to the configured error's frame.
         Default: the configured initial covariance. The next sample at a time
-        after ``t`` is the first step.
+        after ``t`` is the first step. The heading counts as known: a
+        magnetometer then corrects it instead of setting it afresh.
         """
         state = new_state(self._coefficients)
         s = state[0]
@@ -252,6 +289,7 @@ class Estimator:
         s["t"] = float(t)
         s["t_accel"] = float(t)
         s["initialised"] = 1
+        s["mag_state"] = 1  # heading is given: a magnetometer corrects it, not re-sets it
         self._bind(state)
 
     @property
@@ -279,26 +317,57 @@ class Estimator:
     def accel_rejections(self) -> int:
         return int(self._state["accel_rejections"][0])
 
-    def _check_mag(self, mag: Any) -> None:
-        if mag is not None and not self._warned_mag:
-            self._warned_mag = True
-            warnings.warn(
-                "magnetometer samples are not fused yet: estimating tilt and a free heading (6-D)",
-                stacklevel=3,
-            )
+    @property
+    def declination(self) -> float:
+        """Magnetic declination in use (rad, east positive); starts as ``config.compass_dec``."""
+        return float(self._coefficients["mag_declination"][0])
+
+    @declination.setter
+    def declination(self, value: float) -> None:
+        """Change the declination (e.g. to the vehicle's own COMPASS_DEC) while running.
+
+        Heading follows through the magnetometer updates, as fast as they correct it.
+        """
+        if not math.isfinite(value):
+            raise ValueError("declination must be finite (rad)")
+        self._coefficients["mag_declination"] = value
+
+    @property
+    def mag_rejections(self) -> int:
+        """Magnetometer samples not used: field off the reference, or innovation gated."""
+        return int(self._state["mag_disturbances"][0])
+
+    @property
+    def heading_referenced(self) -> bool:
+        """Whether a magnetometer has set the heading (9-D); else heading is free (6-D)."""
+        return bool(self._state["mag_state"][0])
 
     def update(
         self, t: float, gyro: ArrayLike, accel: ArrayLike, mag: ArrayLike | None = None
     ) -> Estimate:
-        """Take one sample; return the estimate after it."""
-        if mag is not None:
-            self._check_mag(mag)
-        t_step, nis, accel_used, flags, iterations, at_rest = self._step(
+        """Take one sample; return the estimate after it.
+
+        ``mag`` (µT, FRD) when this sample carries a magnetometer reading; None
+        (or NaN) when it does not: heading then runs on the gyro alone.
+        """
+        m = _NO_MAG if mag is None else _components3(mag, "mag")
+        (
+            t_step,
+            nis,
+            accel_used,
+            flags,
+            iterations,
+            at_rest,
+            heading_innovation,
+            heading_nis,
+            mag_used,
+        ) = self._step(
             self._state,
             self._coefficients,
             float(t),
             *_components3(gyro, "gyro"),
             *_components3(accel, "accel"),
+            *m,
         )
         return Estimate(
             t_step,
@@ -311,6 +380,9 @@ class Estimator:
             flags,
             iterations,
             at_rest,
+            heading_innovation,
+            heading_nis,
+            mag_used,
         )
 
     def update_batch(
@@ -320,14 +392,18 @@ class Estimator:
         accel: ArrayLike,
         mag: ArrayLike | None = None,
     ) -> EstimateSeries:
-        """Take N samples in one compiled loop; return the estimate after each."""
-        self._check_mag(mag)
+        """Take N samples in one compiled loop; return the estimate after each.
+
+        ``mag`` (N, 3) µT, NaN rows where a sample has no magnetometer reading;
+        None: 6-D throughout.
+        """
         t = np.ascontiguousarray(t, dtype=np.float64)
         if t.ndim != 1:
             raise ValueError(f"t must be one-dimensional, got shape {t.shape}")
         n = t.shape[0]
         gyro = _series3(gyro, n, "gyro")
         accel = _series3(accel, n, "accel")
+        mag = np.full((n, 3), np.nan) if mag is None else _series3(mag, n, "mag")
         out = EstimateSeries(
             t.copy(),
             np.empty((n, 4)),
@@ -339,6 +415,9 @@ class Estimator:
             np.empty(n, dtype=np.int64),
             np.empty(n, dtype=np.int64),
             np.empty(n, dtype=bool),
+            np.empty(n),
+            np.empty(n),
+            np.empty(n, dtype=bool),
         )
         _run_batch(
             self._state,
@@ -346,6 +425,7 @@ class Estimator:
             t,
             gyro,
             accel,
+            mag,
             out.q,
             out.bias,
             out.cov,
@@ -355,6 +435,9 @@ class Estimator:
             out.flags,
             out.iterations,
             out.at_rest,
+            out.heading_innovation,
+            out.heading_nis,
+            out.mag_used,
         )
         return out
 

@@ -17,6 +17,9 @@ from mavest.estimator.config import (
     EstimatorConfig,
 )
 
+# The estimator takes the field in µT; ArduPilot's COMPASS_OFS is in milligauss.
+MICROTESLA_PER_MILLIGAUSS = 0.1
+
 # Type names for one element of the record arrays below, as the kernels receive them.
 StateRecord = np.void
 CoefficientsRecord = np.void
@@ -49,6 +52,12 @@ class StepFlags:
     TILT_REOPENED = 256  # disturbed too long: tilt given its initial uncertainty again
     LOWPASS_RESTARTED = 512  # a large correction: the accelerometer low-pass starts again
     ACCEL_DEFERRED = 1024  # the low-pass has not averaged enough yet to be used
+    MAG_INVALID = 2048  # magnetometer zero, or (nearly) vertical: no heading in it
+    MAG_DISTURBED = 4096  # field norm or dip off the reference: not used
+    MAG_REJECTED = 8192  # heading innovation beyond the χ² gate: not used
+    HEADING_ALIGNED = 16384  # heading set from the magnetometer (first sample, or again)
+    MAG_REFERENCE_CHANGED = 32768  # a steady new field became the reference
+    HEADING_REOPENED = 65536  # magnetometer rejected too long: heading uncertain again
 
     SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING
 
@@ -99,6 +108,19 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("rest_accel_threshold", np.float64),
         ("rest_min_time", np.float64),
         ("rest_rate_var", np.float64),
+        ("mag_heading_var_density", np.float64),  # rad²·s
+        ("mag_reopened_heading_var", np.float64),
+        ("mag_offsets", np.float64, 3),  # µT
+        ("mag_soft_iron", np.float64, (3, 3)),
+        ("mag_declination", np.float64),
+        ("mag_norm_tolerance", np.float64),
+        ("mag_dip_tolerance", np.float64),
+        ("mag_gate", np.float64),
+        ("mag_reference_time", np.float64),
+        ("mag_reference_adapt_time", np.float64),
+        ("mag_new_reference_time", np.float64),
+        ("mag_max_rejection_time", np.float64),
+        ("mag_recovery_time", np.float64),
     ]
 )
 
@@ -123,6 +145,21 @@ STATE_DTYPE = np.dtype(
         ("rest_accel_lp", np.float64, 3),
         ("rest_time", np.float64),  # how long the rest criteria have held, s
         ("filters_primed", np.int64),  # the three low-passes hold a sample
+        # the magnetometer: 0 heading free (6-D), 1 heading set and the reference
+        # field being learned, 2 reference set
+        ("mag_state", np.int64),
+        ("mag_ref_norm", np.float64),  # µT
+        ("mag_ref_dip", np.float64),  # rad
+        ("mag_learn_time", np.float64),  # s averaged into the reference so far
+        ("mag_candidate_norm", np.float64),  # a disturbed but steady field
+        ("mag_candidate_dip", np.float64),
+        ("mag_candidate_time", np.float64),  # how long it has been steady, s
+        ("mag_lp_norm", np.float64),  # norm and dip low-passed for the disturbance check
+        ("mag_lp_dip", np.float64),
+        ("mag_clear_time", np.float64),  # how long the field has been undisturbed, s
+        ("t_mag", np.float64),  # time of the last valid magnetometer sample
+        ("t_mag_used", np.float64),  # time of the last heading update (or alignment)
+        ("mag_disturbances", np.int64),  # samples not used: norm/dip off or gated
         # what the last step did
         ("innovation", np.float64, 2),  # gravity residual before the update, rad
         ("nis", np.float64),  # normalised innovation squared (χ², 2 dof)
@@ -130,6 +167,9 @@ STATE_DTYPE = np.dtype(
         ("flags", np.int64),  # StepFlags bits
         ("iterations", np.int64),
         ("at_rest", np.int64),  # rest detected: the bias got a zero-rate update
+        ("heading_innovation", np.float64),  # magnetometer azimuth − declination, rad
+        ("heading_nis", np.float64),  # its normalised square (χ², 1 dof)
+        ("mag_used", np.int64),
         # scratch, so that the hot path allocates nothing
         ("w_R", np.float64, (3, 3)),
         ("w_R_tilt", np.float64, (3, 3)),
@@ -137,7 +177,12 @@ STATE_DTYPE = np.dtype(
         ("w_n33", np.float64, (3, 3)),
         ("w_v3", np.float64, 3),
         ("w_u3", np.float64, 3),
-        ("w_sample", np.float64, 6),  # the online step's gyro and accel
+        ("w_sample", np.float64, 9),  # the online step's gyro, accel and magnetometer
+        ("w_mag", np.float64, 3),
+        ("w_Hm", np.float64, N_STATE_MAX),
+        ("w_Km", np.float64, (N_STATE_MAX, 1)),
+        ("w_Cm", np.float64, (N_STATE_MAX, 1)),
+        ("w_Sm", np.float64, (1, 1)),
         ("w_z", np.float64, 3),
         ("w_h", np.float64, 3),
         ("w_Bz", np.float64, (3, 2)),
@@ -212,6 +257,19 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["rest_accel_threshold"] = config.rest_accel_threshold
     c["rest_min_time"] = config.rest_min_time
     c["rest_rate_var"] = config.rest_rate_sigma**2
+    c["mag_heading_var_density"] = config.mag_heading_noise_density**2
+    c["mag_reopened_heading_var"] = config.mag_reopened_heading_sigma**2
+    c["mag_offsets"] = np.asarray(config.compass_ofs) * MICROTESLA_PER_MILLIGAUSS
+    c["mag_soft_iron"] = config.soft_iron
+    c["mag_declination"] = config.compass_dec
+    c["mag_norm_tolerance"] = config.mag_norm_tolerance
+    c["mag_dip_tolerance"] = config.mag_dip_tolerance
+    c["mag_gate"] = config.mag_gate
+    c["mag_reference_time"] = config.mag_reference_time
+    c["mag_reference_adapt_time"] = config.mag_reference_adapt_time
+    c["mag_new_reference_time"] = config.mag_new_reference_time
+    c["mag_max_rejection_time"] = config.mag_max_rejection_time
+    c["mag_recovery_time"] = config.mag_recovery_time
     return c
 
 
@@ -236,5 +294,9 @@ def new_state(coefficients: np.ndarray) -> np.ndarray:
     s["t"] = -np.inf
     s["t_accel"] = -np.inf
     s["nis"] = np.nan
+    s["heading_innovation"] = np.nan
+    s["heading_nis"] = np.nan
+    s["t_mag"] = -np.inf
+    s["t_mag_used"] = -np.inf
     s["innovation"] = np.nan
     return s

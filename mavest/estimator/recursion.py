@@ -70,7 +70,7 @@ import numpy as np
 
 from mavest import so3, sphere
 from mavest._jit import kernel
-from mavest.estimator import gravity
+from mavest.estimator import gravity, magnetic
 from mavest.estimator.charts import local_into, reset_jacobian_into, retract_into
 from mavest.estimator.layout import (
     ERROR_LEFT,
@@ -112,6 +112,12 @@ _GAP_REALIGNED = StepFlags.GAP_REALIGNED
 _TILT_REOPENED = StepFlags.TILT_REOPENED
 _LOWPASS_RESTARTED = StepFlags.LOWPASS_RESTARTED
 _ACCEL_DEFERRED = StepFlags.ACCEL_DEFERRED
+_MAG_INVALID = StepFlags.MAG_INVALID
+_MAG_DISTURBED = StepFlags.MAG_DISTURBED
+_MAG_REJECTED = StepFlags.MAG_REJECTED
+_HEADING_ALIGNED = StepFlags.HEADING_ALIGNED
+_MAG_REFERENCE_CHANGED = StepFlags.MAG_REFERENCE_CHANGED
+_HEADING_REOPENED = StepFlags.HEADING_REOPENED
 
 
 # --------------------------------------------------------------------------
@@ -223,13 +229,14 @@ def _set_attitude_covariance_world(
     c: CoefficientsRecord,
     tilt_var: float,
     heading_var: float,
-    keep_heading: bool,
+    set_tilt: bool,
+    set_heading: bool,
 ) -> None:
-    """Set the tilt (and heading) variances of P as seen in the world frame.
+    """Set the tilt and/or heading variances of P as seen in the world frame.
 
     Tilt is rotation about the two horizontal world axes, heading about the
-    vertical. Their cross-covariances with everything else are cleared; a kept
-    heading keeps its variance and its covariances.
+    vertical. What is set loses its cross-covariances with everything else;
+    what is kept keeps its variance and its covariances.
     """
     n = c.n_state
     _error_frame_from_world(s, c)  # M (world → error frame) in w_m33
@@ -238,15 +245,12 @@ def _set_attitude_covariance_world(
             s.w_n33[i, j] = s.w_m33[j, i]  # Mᵀ: error frame → world
     # a change of coordinates of δθ only, not a move of the reference
     _transform_blocks(s, c, s.P[:n, :n], s.w_n33, s.w_W, False)
-    last = 2 if keep_heading else 3
-    for i in range(last):
-        for j in range(n):
-            s.P[i, j] = 0.0
-            s.P[j, i] = 0.0
-    s.P[0, 0] = tilt_var
-    s.P[1, 1] = tilt_var
-    if not keep_heading:
-        s.P[2, 2] = heading_var
+    for i in range(3):
+        if (i < 2 and set_tilt) or (i == 2 and set_heading):
+            for j in range(n):
+                s.P[i, j] = 0.0
+                s.P[j, i] = 0.0
+            s.P[i, i] = tilt_var if i < 2 else heading_var
     _transform_blocks(s, c, s.P[:n, :n], s.w_m33, s.w_W, False)
 
 
@@ -275,8 +279,10 @@ def _align(
         for i in range(3):
             s.b[i] = c.initial_bias[i]
             s.P[3 + i, 3 + i] = c.initial_bias_var
-    _set_attitude_covariance_world(s, c, c.initial_tilt_var, c.initial_heading_var, False)
+    _set_attitude_covariance_world(s, c, c.initial_tilt_var, c.initial_heading_var, True, True)
     _reset_velocity_covariance(s, c)
+    if not keep_heading:
+        s.mag_state = 0  # the next magnetometer sample sets heading
     s.filters_primed = 0  # the low-passes start again with the next sample
 
 
@@ -819,7 +825,7 @@ def _reopen_tilt(s: StateRecord, c: CoefficientsRecord) -> None:
     The next update then moves tilt most of the way to the accelerometer,
     while heading and bias keep what they know.
     """
-    _set_attitude_covariance_world(s, c, c.initial_tilt_var, c.initial_heading_var, True)
+    _set_attitude_covariance_world(s, c, c.initial_tilt_var, c.initial_heading_var, True, False)
 
 
 @kernel
@@ -1010,6 +1016,219 @@ def _gravity_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: flo
 
 
 # --------------------------------------------------------------------------
+# The magnetometer: heading only
+# --------------------------------------------------------------------------
+
+# A magnetometer sample counts for at most this long of field (s), however long
+# since the previous one: after a pause it is one noisy sample, not a long average.
+_MAG_MAX_DT = 0.1
+# Time constant of the norm and dip low-pass the disturbance check looks at (s;
+# VQF's magCurrentTau).
+_MAG_CHECK_TIME = 0.05
+# A heading set from one sample is never claimed worse than this (rad²): beyond
+# it the linearised heading update would mean little anyway.
+_MAX_ALIGNED_HEADING_VAR = 1.0
+
+
+@kernel
+def _heading_step(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
+    """w_dx = the error-frame vector of a turn by ψ about the world vertical."""
+    _error_frame_from_world(s, c)  # world → error frame in w_m33
+    for i in range(c.n_state):
+        s.w_dx[i] = 0.0
+    for i in range(3):
+        s.w_dx[i] = s.w_m33[i, 2] * psi
+
+
+@kernel
+def _align_heading(s: StateRecord, c: CoefficientsRecord, azimuth: float, var: float) -> None:
+    """Turn the estimate so that the field's azimuth is the declination.
+
+    Heading then has the variance of this one sample, ``var`` (what a Kalman
+    update from no prior would give), at most _MAX_ALIGNED_HEADING_VAR.
+    """
+    _heading_step(s, c, magnetic.wrap(c.mag_declination - azimuth))
+    _apply_correction(s, c, s.w_dx)
+    var = min(var, _MAX_ALIGNED_HEADING_VAR)
+    _set_attitude_covariance_world(s, c, 0.0, var, False, True)
+
+
+@kernel
+def _track_reference(
+    s: StateRecord, c: CoefficientsRecord, norm: float, dip: float, dt: float
+) -> bool:
+    """Learn or follow the reference field; True if this field is disturbed.
+
+    While learning (the first mag_reference_time after heading was set) the
+    reference is the running mean of norm and dip, and nothing is disturbed.
+    Then the field's norm and dip, low-passed over _MAG_CHECK_TIME so that
+    noise neither hides nor fakes a disturbance, are checked against the
+    reference. A disturbed field that stays steady (within the tolerances of
+    its own running mean) for mag_new_reference_time becomes the reference:
+    the vehicle moved somewhere else, the field did not pass by.
+    """
+    if s.mag_state == 1 and s.mag_learn_time == 0.0:  # heading given by initialise()
+        s.mag_lp_norm = norm
+        s.mag_lp_dip = dip
+        s.mag_clear_time = c.mag_recovery_time
+    alpha = min(dt / _MAG_CHECK_TIME, 1.0)
+    s.mag_lp_norm += alpha * (norm - s.mag_lp_norm)
+    s.mag_lp_dip += alpha * (dip - s.mag_lp_dip)
+    if s.mag_state == 1:
+        weight = dt / (s.mag_learn_time + dt)
+        s.mag_ref_norm += weight * (norm - s.mag_ref_norm)
+        s.mag_ref_dip += weight * (dip - s.mag_ref_dip)
+        s.mag_learn_time += dt
+        if s.mag_learn_time >= c.mag_reference_time:
+            s.mag_state = 2
+        return False
+    norm, dip = s.mag_lp_norm, s.mag_lp_dip
+    tolerance = c.mag_norm_tolerance
+    disturbed = (
+        abs(norm - s.mag_ref_norm) > tolerance * s.mag_ref_norm
+        or abs(dip - s.mag_ref_dip) > c.mag_dip_tolerance
+    )
+    if not disturbed:
+        s.mag_candidate_time = 0.0
+        if c.mag_reference_adapt_time > 0.0:
+            alpha = min(dt / c.mag_reference_adapt_time, 1.0)
+            s.mag_ref_norm += alpha * (norm - s.mag_ref_norm)
+            s.mag_ref_dip += alpha * (dip - s.mag_ref_dip)
+        return False
+    steady = (
+        s.mag_candidate_time > 0.0
+        and abs(norm - s.mag_candidate_norm) <= tolerance * s.mag_candidate_norm
+        and abs(dip - s.mag_candidate_dip) <= c.mag_dip_tolerance
+    )
+    if steady:
+        weight = dt / (s.mag_candidate_time + dt)
+        s.mag_candidate_norm += weight * (norm - s.mag_candidate_norm)
+        s.mag_candidate_dip += weight * (dip - s.mag_candidate_dip)
+        s.mag_candidate_time += dt
+    else:
+        s.mag_candidate_norm = norm
+        s.mag_candidate_dip = dip
+        s.mag_candidate_time = dt
+    if s.mag_candidate_time >= c.mag_new_reference_time:
+        s.mag_ref_norm = s.mag_candidate_norm
+        s.mag_ref_dip = s.mag_candidate_dip
+        s.mag_candidate_time = 0.0
+        s.flags |= _MAG_REFERENCE_CHANGED
+        return False
+    return True
+
+
+@kernel
+def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray, dt: float) -> None:
+    """Heading from the magnetometer (:mod:`mavest.estimator.magnetic`); NaN mag: none.
+
+    The first usable sample sets heading; later ones are scalar Kalman updates
+    of the heading with the tilt rows of the gain zeroed, gated by the field's
+    norm and dip against the reference and by the innovation's χ².
+    """
+    if not _vector_is_finite(mag):
+        return  # no magnetometer in this sample
+    m = s.w_mag
+    magnetic.calibrate_into(mag, c.mag_offsets, c.mag_soft_iron, m)
+    azimuth, dip, norm = magnetic.field_geometry(s.q, m, s.w_u3)
+    if not (norm > 0.0 and math.isfinite(azimuth)):
+        s.flags |= _MAG_INVALID
+        return
+    dt_mag = t - s.t_mag if s.t_mag > -math.inf else dt
+    dt_mag = max(min(dt_mag, _MAG_MAX_DT), 1e-6)
+    s.t_mag = t
+    if s.mag_state == 0:
+        _align_heading(s, c, azimuth, c.mag_heading_var_density / dt_mag)
+        s.mag_state = 1
+        s.mag_ref_norm = norm
+        s.mag_ref_dip = dip
+        s.mag_learn_time = dt_mag
+        s.mag_candidate_time = 0.0
+        s.mag_lp_norm = norm
+        s.mag_lp_dip = dip
+        s.mag_clear_time = c.mag_recovery_time
+        s.t_mag_used = t
+        s.heading_innovation = magnetic.wrap(azimuth - c.mag_declination)
+        s.mag_used = 1
+        s.flags |= _HEADING_ALIGNED
+        return
+    if s.t_mag_used == -math.inf:  # heading given by initialise(): nothing rejected yet
+        s.t_mag_used = t
+    disturbed = _track_reference(s, c, norm, dip, dt_mag)
+    s.mag_clear_time = 0.0 if disturbed else s.mag_clear_time + dt_mag
+    disturbed = s.mag_clear_time < c.mag_recovery_time
+    gate = c.mag_gate
+    if c.mag_max_rejection_time > 0.0 and t - s.t_mag_used > c.mag_max_rejection_time:
+        # rejected this long: more likely heading is off than the field; heading
+        # gets its initial uncertainty (if it claims less) and the field is used
+        s.flags |= _HEADING_REOPENED
+        _heading_step(s, c, 1.0)  # w_dx[:3] = the error-frame image of the vertical
+        heading_var = 0.0
+        for i in range(3):
+            for j in range(3):
+                heading_var += s.w_dx[i] * s.P[i, j] * s.w_dx[j]
+        if heading_var < c.mag_reopened_heading_var:
+            _set_attitude_covariance_world(s, c, 0.0, c.mag_reopened_heading_var, False, True)
+        s.mag_candidate_time = 0.0
+        s.mag_clear_time = c.mag_recovery_time
+        disturbed = False
+        gate = 0.0
+    nu = magnetic.wrap(azimuth - c.mag_declination)
+    # The measurement as the filter uses it: y = −ψ + w, with the tilt error's
+    # leak into the azimuth (H_τ τ, H_τ = tan(dip)·(cos d, sin d)) counted in w
+    # as independent noise — not through P's tilt–heading correlation (see the
+    # module docstring for why).
+    magnetic.heading_jacobian_into(s.q, dip, c.mag_declination, c.error, s.w_R, s.w_v3)
+    magnetic.heading_jacobian_into(s.q, 0.0, c.mag_declination, c.error, s.w_R, s.w_Hm)
+    n = c.n_state
+    P = s.P
+    H = s.w_Hm
+    C = s.w_Cm
+    K = s.w_Km
+    S = c.mag_heading_var_density / dt_mag
+    for i in range(3):  # + (H − H_ψ) P (H − H_ψ)ᵀ: the tilt leak, as independent noise
+        for j in range(3):
+            S += (s.w_v3[i] - H[i]) * P[i, j] * (s.w_v3[j] - H[j])
+    for i in range(n):
+        acc = P[i, 0] * H[0] + P[i, 1] * H[1] + P[i, 2] * H[2]
+        C[i, 0] = acc
+        K[i, 0] = acc
+        if i < 3:
+            S += H[i] * acc
+    nis = nu * nu / S
+    s.heading_innovation = nu
+    s.heading_nis = nis
+    if disturbed:
+        s.flags |= _MAG_DISTURBED
+        s.mag_disturbances += 1
+        return
+    if gate > 0.0 and not nis <= gate:
+        s.flags |= _MAG_REJECTED
+        s.mag_disturbances += 1
+        return
+    # K = (P H_ψᵀ) / S with the tilt rows zeroed in the world frame
+    # (considered), and the considered low-pass states' rows zeroed as in
+    # every update
+    _error_frame_from_world(s, c)  # M: world → error frame; K_world = Mᵀ K_θ
+    M = s.w_m33
+    vertical = M[0, 2] * K[0, 0] + M[1, 2] * K[1, 0] + M[2, 2] * K[2, 0]
+    for i in range(n):
+        if i < 3:
+            K[i, 0] = M[i, 2] * vertical / S
+        elif i < _EPS:
+            K[i, 0] = K[i, 0] / S
+        else:
+            K[i, 0] = 0.0
+    s.w_Sm[0, 0] = S
+    gain_update(P[:n, :n], K[:n], C[:n], s.w_Sm, 1)
+    for i in range(n):
+        s.w_dx[i] = K[i, 0] * nu
+    _apply_correction(s, c, s.w_dx)
+    s.mag_used = 1
+    s.t_mag_used = t
+
+
+# --------------------------------------------------------------------------
 # Rest: detection and the zero-rate update of the bias
 # --------------------------------------------------------------------------
 
@@ -1098,29 +1317,43 @@ def _accel_usable_for_alignment(c: CoefficientsRecord, accel: np.ndarray) -> boo
 
 @kernel
 def step(
-    s: StateRecord, c: CoefficientsRecord, t: float, gyro: np.ndarray, accel: np.ndarray
+    s: StateRecord,
+    c: CoefficientsRecord,
+    t: float,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    mag: np.ndarray,
 ) -> None:
-    """Process one IMU sample taken at time t (s): gyro (rad/s), accel (m/s²), both FRD.
+    """Process one IMU sample taken at time t (s): gyro (rad/s), accel (m/s²), mag (µT), FRD.
 
-    The gyro sample is held over (t_prev, t]. Samples that cannot be used are
-    skipped and say why in ``s.flags``; the estimate stays finite throughout.
+    The gyro sample is held over (t_prev, t]; a NaN magnetometer means none in
+    this sample. Samples that cannot be used are skipped and say why in
+    ``s.flags``; the estimate stays finite throughout.
     """
-    _step_sample(s, c, t, gyro, accel)
+    _step_sample(s, c, t, gyro, accel, mag)
     # the structured products round the two triangles differently
     symmetrise(s.P[: c.n_state, : c.n_state])
 
 
 @kernel
 def _step_sample(
-    s: StateRecord, c: CoefficientsRecord, t: float, gyro: np.ndarray, accel: np.ndarray
+    s: StateRecord,
+    c: CoefficientsRecord,
+    t: float,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    mag: np.ndarray,
 ) -> None:
     s.flags = 0
     s.accel_used = 0
+    s.mag_used = 0
     s.iterations = 0
     s.at_rest = 0
     s.nis = math.nan
     s.innovation[0] = math.nan
     s.innovation[1] = math.nan
+    s.heading_innovation = math.nan
+    s.heading_nis = math.nan
     if not s.initialised:
         if math.isfinite(t) and _vector_is_finite(gyro) and _accel_usable_for_alignment(c, accel):
             _align(s, c, accel, False, False)
@@ -1130,6 +1363,7 @@ def _step_sample(
             s.samples += 1
             s.flags = _INITIALISED
             s.accel_used = 1
+            mag_update(s, c, t, mag, 0.0)
         else:
             s.flags = _NOT_INITIALISED
         return
@@ -1164,3 +1398,4 @@ def _step_sample(
     if _detect_rest(s, c, gyro, accel, dt):
         _zero_rate_update(s, c, gyro, dt)
     accel_update(s, c, t, accel, dt)
+    mag_update(s, c, t, mag, dt)

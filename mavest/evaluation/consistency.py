@@ -26,7 +26,7 @@ from mavest.estimator.charts import chart_quat_into, local_into
 from mavest.estimator.config import CHARTS, ERROR_SIDES, EstimatorConfig
 from mavest.estimator.estimator import Estimator
 from mavest.evaluation.metrics import attitude_errors
-from mavest.sim.kinematic import ImuNoise, Motion, SimulatedImu, simulate
+from mavest.sim.kinematic import ImuNoise, Motion, SimulatedImu, earth_field, simulate
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,7 @@ class Scenario:
     motion: Motion = field(default_factory=Motion)
     duration: float = 60.0  # s
     rate: float = 100.0  # Hz
+    magnetometer: bool = False  # 9-D: the filter also gets the field
 
 
 SCENARIOS: tuple[Scenario, ...] = (
@@ -62,6 +63,20 @@ SCENARIOS: tuple[Scenario, ...] = (
         math.radians(2.0),
         math.radians(2.0),
         Motion(burst_magnitude=3.0, burst_duration=1.0, burst_interval=5.0),
+    ),
+    Scenario(
+        "small_9d",
+        "tilt₀ 2°, heading₀ 2°, magnetometer",
+        math.radians(2.0),
+        math.radians(2.0),
+        magnetometer=True,
+    ),
+    Scenario(
+        "large_heading_9d",
+        "tilt₀ 5°, heading₀ 30°, magnetometer (heading observed: the reset matters)",
+        math.radians(5.0),
+        math.radians(30.0),
+        magnetometer=True,
     ),
 )
 
@@ -122,7 +137,8 @@ def run_once(
     q0 = so3.quat_multiply(so3.quat_conjugate(error_rotation), data.q_true[0])
     estimator = Estimator(config)
     estimator.initialise(data.t[0], q0, np.zeros(3), P0)
-    out = estimator.update_batch(data.t[1:], data.gyro[1:], data.accel[1:])
+    mag = data.mag[1:] if scenario.magnetometer else None
+    out = estimator.update_batch(data.t[1:], data.gyro[1:], data.accel[1:], mag)
     e = _errors(
         data.q_true[1:],
         data.bias_true[1:],
@@ -235,6 +251,7 @@ def simulate_scenario(scenario: Scenario, config: EstimatorConfig, seed: int) ->
         motion=motion,
         seed=seed,
         gravity=config.gravity,
+        field_ned=earth_field(config.compass_dec),
     )
 
 

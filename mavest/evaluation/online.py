@@ -43,13 +43,15 @@ class ComparisonResult:
     inclination_rms: float
     yaw_rms: float  # deg; with no heading reference (6-D) this measures drift
 
-    def describe(self) -> str:
+    def describe(self, heading_referenced: bool = False) -> str:
+        """One line; ``heading_referenced``: the estimate had a magnetometer (9-D)."""
         if self.count == 0:
             return "no overlap"
+        yaw = "RMS" if heading_referenced else "(6-D: no heading reference, this is drift)"
         return (
             f"roll {self.roll_rms:.2f}°, pitch {self.pitch_rms:.2f}°, "
             f"tilt {self.inclination_rms:.2f}° RMS (n={self.count}); "
-            f"yaw {self.yaw_rms:.1f}° (no heading reference yet: free)"
+            f"yaw {self.yaw_rms:.1f}° {yaw}"
         )
 
 

@@ -17,6 +17,7 @@ from typing import Any, NamedTuple
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavest.estimator.config import STANDARD_GRAVITY
+from mavest.mavlink.signing import Signing, advance_clock, enable_outgoing
 
 MAVLink = mavlink2.MAVLink
 MAVLinkMessage = mavlink2.MAVLink_message
@@ -157,33 +158,58 @@ def decode_imu(message: Any) -> ImuSample | None:
 
 
 class Encoder:
-    """mavest's outgoing messages, as MAVLink 2 packets from its own system and component."""
+    """mavest's outgoing messages, as MAVLink 2 packets from its own system and component.
 
-    def __init__(self, system: int, component: int) -> None:
+    With ``signing`` (and its ``sign_outgoing``), every packet is signed by pymavlink
+    with the key, mavest's fixed link id and a timestamp kept at the signing clock's now.
+    """
+
+    def __init__(self, system: int, component: int, signing: Signing | None = None) -> None:
         self.system = system
         self.component = component
         self._mav = MAVLink(None, srcSystem=system, srcComponent=component)
+        self.signed = False
+        if signing is not None and signing.sign_outgoing:
+            enable_outgoing(self._mav, signing.key)
+            self.signed = True
+
+    def _pack(self, message: Any) -> bytes:
+        """The packet of ``message``: signed at the signing clock's now (if it signs), with
+        the next sequence number (pymavlink advances it only in ``send``, which a
+        packet for several links does not use), so that receivers can count losses."""
+        mav = self._mav
+        if self.signed:
+            advance_clock(mav.signing)
+        packet = message.pack(mav)
+        mav.seq = (mav.seq + 1) % 256
+        return packet
 
     def attitude(self, time_boot_ms: int, euler: Any, rates: tuple[float, float, float]) -> bytes:
-        return self._mav.attitude_encode(
-            time_boot_ms, float(euler[0]), float(euler[1]), float(euler[2]), *rates
-        ).pack(self._mav)
+        return self._pack(
+            self._mav.attitude_encode(
+                time_boot_ms, float(euler[0]), float(euler[1]), float(euler[2]), *rates
+            )
+        )
 
     def attitude_quaternion(
         self, time_boot_ms: int, q: Any, rates: tuple[float, float, float]
     ) -> bytes:
-        return self._mav.attitude_quaternion_encode(
-            time_boot_ms, float(q[0]), float(q[1]), float(q[2]), float(q[3]), *rates
-        ).pack(self._mav)
+        return self._pack(
+            self._mav.attitude_quaternion_encode(
+                time_boot_ms, float(q[0]), float(q[1]), float(q[2]), float(q[3]), *rates
+            )
+        )
 
     def heartbeat(self) -> bytes:
-        return self._mav.heartbeat_encode(
-            mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
-            mavlink2.MAV_AUTOPILOT_INVALID,
-            0,
-            0,
-            mavlink2.MAV_STATE_ACTIVE,
-        ).pack(self._mav)
+        return self._pack(
+            self._mav.heartbeat_encode(
+                mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
+                mavlink2.MAV_AUTOPILOT_INVALID,
+                0,
+                0,
+                mavlink2.MAV_STATE_ACTIVE,
+            )
+        )
 
     def set_message_interval(
         self, target_system: int, target_component: int, message: str, rate_hz: float
@@ -191,19 +217,21 @@ class Encoder:
         """MAV_CMD_SET_MESSAGE_INTERVAL: the only command mavest ever sends."""
         message_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{message}")
         interval_us = 1e6 / rate_hz if rate_hz > 0 else -1.0
-        return self._mav.command_long_encode(
-            target_system,
-            target_component,
-            mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
-            0,
-            float(message_id),
-            float(interval_us),
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-        ).pack(self._mav)
+        return self._pack(
+            self._mav.command_long_encode(
+                target_system,
+                target_component,
+                mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
+                0,
+                float(message_id),
+                float(interval_us),
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            )
+        )
 
 
 def time_boot_ms(t: float) -> int:

@@ -1,21 +1,28 @@
 """The service's settings: which IMU stream to follow, what to send back, as whom.
 
-A configuration file has three tables: ``[estimator]`` (the filter,
-:class:`~mavest.estimator.EstimatorConfig`), ``[input]`` and ``[output]``
-(this module). Every table and every key is optional; unknown keys are an error
-naming the known ones. Command-line options override the file.
+A configuration file has four tables: ``[estimator]`` (the filter,
+:class:`~mavest.estimator.EstimatorConfig`), ``[input]``, ``[output]`` and
+``[signing]`` (this module). Every table and every key is optional; unknown
+keys are an error naming the known ones. Command-line options override the file.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from mavest.estimator.config import ConfigError, EstimatorConfig, read_toml
 from mavest.mavlink.messages import IMU_MESSAGES
+from mavest.mavlink.signing import (
+    KEY_ENVIRONMENT_VARIABLE,
+    Signing,
+    key_from_file,
+    key_from_text,
+)
 
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 GROUND_STATION_SYSTEM = 255
@@ -83,32 +90,88 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class SigningConfig:
+    """MAVLink 2 signing on a live link (``mavest run``); the key itself is never stored here.
+
+    The key comes from ``--signing-key FILE``, else the environment variable
+    MAVEST_SIGNING_KEY (hex or passphrase), else ``key_file``; with none of them,
+    nothing is signed or verified. Formats: :mod:`mavest.mavlink.signing`.
+    """
+
+    # File holding the key: 32 raw bytes, 64 hex digits, or a passphrase (key = its
+    # SHA-256, as MAVProxy's `signing setup`). Relative to the configuration file.
+    key_file: str = ""
+    sign_outgoing: bool = True  # sign what mavest sends (when there is a key)
+    # Drop unsigned input (needs a key). Signed input is verified whenever there is a key.
+    require_signed: bool = False
+
+    def __post_init__(self) -> None:
+        _require(isinstance(self.key_file, str), "signing.key_file must be a path (a string)")
+        _require(isinstance(self.sign_outgoing, bool), "signing.sign_outgoing must be true/false")
+        _require(isinstance(self.require_signed, bool), "signing.require_signed must be true/false")
+
+    def resolve(
+        self, environ: Mapping[str, str], key_file: str | Path | None = None
+    ) -> Signing | None:
+        """The key and policy to run with, or None (no signing) when no key is given.
+
+        ``key_file`` (the command line's) comes first, then the environment variable
+        (an empty one counts as unset), then this table's ``key_file``. A
+        :class:`~mavest.mavlink.signing.SigningKeyError` says what is wrong with a key.
+        """
+        if key_file is None and environ.get(KEY_ENVIRONMENT_VARIABLE):
+            source = KEY_ENVIRONMENT_VARIABLE
+            key, kind = key_from_text(environ[KEY_ENVIRONMENT_VARIABLE], source)
+        else:
+            path = key_file if key_file is not None else self.key_file
+            if not path:
+                _require(
+                    not self.require_signed,
+                    "require_signed needs a signing key: --signing-key FILE, "
+                    f"{KEY_ENVIRONMENT_VARIABLE} or [signing] key_file",
+                )
+                return None
+            source = str(path)
+            key, kind = key_from_file(path)
+        return Signing(key, self.sign_outgoing, self.require_signed, source, kind)
+
+
+@dataclass(frozen=True)
 class ServiceConfig:
     """Everything a configuration file sets."""
 
     estimator: EstimatorConfig = dataclasses.field(default_factory=EstimatorConfig)
     input: InputConfig = dataclasses.field(default_factory=InputConfig)
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
+    signing: SigningConfig = dataclasses.field(default_factory=SigningConfig)
 
     @classmethod
     def from_mapping(cls, document: dict[str, Any]) -> ServiceConfig:
-        unknown = sorted(set(document) - {"estimator", "input", "output"})
+        unknown = sorted(set(document) - {"estimator", "input", "output", "signing"})
         _require(
-            not unknown, f"unknown table(s) {', '.join(unknown)}: use estimator, input, output"
+            not unknown,
+            f"unknown table(s) {', '.join(unknown)}: use estimator, input, output, signing",
         )
         return cls(
             EstimatorConfig.from_mapping(document.get("estimator", {})),
             _table(InputConfig, document.get("input", {}), "input"),
             _table(OutputConfig, document.get("output", {}), "output"),
+            _table(SigningConfig, document.get("signing", {}), "signing"),
         )
 
     @classmethod
     def from_toml(cls, path: str | Path) -> ServiceConfig:
         document = read_toml(path)
         try:
-            return cls.from_mapping(document)
+            config = cls.from_mapping(document)
         except ConfigError as error:
             raise ConfigError(f"{path}: {error}") from None
+        key_file = config.signing.key_file
+        if key_file and not Path(key_file).expanduser().is_absolute():
+            # a key next to the configuration works wherever mavest is started from
+            key_file = str(Path(path).parent / key_file)
+            config = config.replace(signing={"key_file": key_file})
+        return config
 
     def replace(self, **changes: dict[str, Any]) -> ServiceConfig:
         """A copy with some keys of some tables changed, e.g. ``output={"system_id": 5}``."""

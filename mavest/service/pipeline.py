@@ -36,6 +36,7 @@ from mavest.mavlink.messages import (
     mavlink2,
     time_boot_ms,
 )
+from mavest.mavlink.signing import Signing, Verifier
 from mavest.mavlink.tlog import TlogWriter
 from mavest.service.config import ServiceConfig
 
@@ -44,6 +45,9 @@ log = logging.getLogger("mavest")
 # A sample beyond these is a broken sensor or a corrupt packet, never flight.
 MAX_GYRO = 50.0  # rad/s (≈ 2900°/s; MEMS gyros saturate at 2000°/s)
 MAX_ACCEL = 50.0 * 9.80665  # m/s²
+MAX_MAG = 1000.0  # µT (10 gauss; the Earth's field is 25–65 µT)
+# Without a magnetometer for this long, a stream is reported as 6-D (once).
+MAG_WAIT = 2.0  # s
 
 # Message preference for input.imu = "auto": SI floats first, then ArduPilot's primary IMU.
 _PREFERENCE = {name: rank for rank, name in enumerate(IMU_MESSAGES)}
@@ -85,6 +89,8 @@ class StreamStats:
     realigned: int = 0
     reboots: int = 0
     wraps: int = 0
+    mag_samples: int = 0  # samples that carried a usable magnetometer reading
+    mag_used: int = 0  # of those, the ones that corrected (or set) heading
     answered: int = 0  # ATTITUDE messages sent for this stream
     first_t: float | None = None
     last_t: float | None = None
@@ -106,6 +112,7 @@ class Stream:
     next_output: float = -math.inf
     vs_autopilot: EulerComparison = field(default_factory=EulerComparison)
     vs_truth: EulerComparison = field(default_factory=EulerComparison)
+    heading_source_reported: bool = False
 
     @property
     def rate(self) -> float:
@@ -127,6 +134,7 @@ class Vehicle:
     fixed_wing: bool = False  # from HEARTBEAT.type
     airspeed: float = math.nan  # m/s, from VFR_HUD
     airspeed_t: float = -math.inf  # vehicle time it arrived at
+    declination: float | None = None  # rad, the vehicle's COMPASS_DEC (PARAM_VALUE)
 
 
 class Pipeline:
@@ -139,8 +147,13 @@ class Pipeline:
         out_tlog: TlogWriter | None = None,
         sinks: list[EstimateSink] | None = None,
         now_us: Callable[[], int] | None = None,
+        signing: Signing | None = None,
     ) -> None:
         self.config = config
+        # MAVLink 2 signing: outgoing packets signed (Encoder), incoming ones checked by
+        # the verifier, which also counts what it dropped; None: neither.
+        self.signing = signing
+        self.verifier = Verifier(signing) if signing is not None else None
         self.links = links if links is not None else []
         self.out_tlog = out_tlog
         self.sinks = sinks if sinks is not None else []
@@ -158,22 +171,36 @@ class Pipeline:
     # ---------------------------------------------------------------- input
 
     def on_bytes(self, link: Link, data: bytes, peer: Any) -> None:
-        """Bytes from a link: parse (one parser per peer) and handle each message."""
+        """Bytes from a link: parse (one parser per peer) and handle each message.
+
+        With signing, the parsers check signatures (pymavlink, with the key); a packet
+        they drop comes out as BAD_DATA and is counted by the verifier, not as damage.
+        """
         key = (id(link), peer)
+        verifier = self.verifier
         parser = self._parsers.get(key)
         if parser is None:
-            parser = MAVLink(None)
-            parser.robust_parsing = True
+            if verifier is not None:
+                parser = verifier.parser()
+            else:
+                parser = MAVLink(None)
+                parser.robust_parsing = True
             self._parsers[key] = parser
         now = self.now_us()
+        dropped_before = verifier.dropped if verifier is not None else 0
         try:
             messages = parser.parse_buffer(data) or ()
         except Exception:  # pymavlink raises on some malformed input even when robust
             self.bad_packets += 1
             return
+        # packets the verifier refused, among the BAD_DATA below
+        refused = verifier.dropped - dropped_before if verifier is not None else 0
         for message in messages:
             if message._type == "BAD_DATA":
-                self.bad_packets += 1
+                if refused:
+                    refused -= 1
+                else:
+                    self.bad_packets += 1
                 continue
             if self.out_tlog is not None:
                 self.out_tlog.write(now, message.get_msgbuf())
@@ -198,6 +225,8 @@ class Pipeline:
                 self._on_reference(
                     vehicle.system, vehicle.component, message, "truth", vehicle.last_t
                 )
+        elif name == "PARAM_VALUE" and message.param_id == "COMPASS_DEC":
+            self._on_declination(system, component, float(message.param_value))
         elif name == "VFR_HUD":
             vehicle = self.vehicles.get((system, component))
             airspeed = float(message.airspeed)
@@ -282,6 +311,8 @@ class Pipeline:
             vs_autopilot=EulerComparison(wanted.settle_time),
             vs_truth=EulerComparison(wanted.settle_time),
         )
+        if vehicle.declination is not None:
+            stream.estimator.declination = vehicle.declination
         self.streams[key] = stream
         if better:
             if vehicle.primary is not None:
@@ -336,7 +367,8 @@ class Pipeline:
         vehicle = self.vehicles[(sample.stream.system, sample.stream.component)]
         if self._corrects_centripetal(vehicle, t):
             accel = _without_centripetal(accel, gyro, stream.estimator.bias, vehicle.airspeed)
-        estimate = stream.estimator.update(t, gyro, accel)
+        mag = _usable_mag(sample.mag)
+        estimate = stream.estimator.update(t, gyro, accel, mag)
         flags = estimate.flags
         if flags & StepFlags.SKIPPED:
             stats.rejected += 1
@@ -348,6 +380,11 @@ class Pipeline:
         if stats.first_t is None:
             stats.first_t = t
         stats.last_t = t
+        if mag is not None:
+            stats.mag_samples += 1
+            stats.mag_used += estimate.mag_used
+        if flags & _HEADING_EVENTS or not stream.heading_source_reported:
+            _report_heading(stream, flags)
         vehicle.last_t = t
         euler = estimate.euler
         euler_tuple = (float(euler[0]), float(euler[1]), float(euler[2]))
@@ -359,6 +396,26 @@ class Pipeline:
                 sink.on_estimate(stream, sample, estimate, euler_tuple, self._record_us, processing)
         if stream.primary and t >= stream.next_output:
             self._answer(stream, t, estimate, euler_tuple, gyro)
+
+    def _on_declination(self, system: int, component: int, declination: float) -> None:
+        """The vehicle's own declination, used unless the configuration sets one."""
+        if system in self.config.input.ignore_systems:
+            return
+        vehicle = self._vehicle(system, component)
+        if (
+            self.config.estimator.compass_dec != 0.0
+            or not math.isfinite(declination)
+            or abs(declination) > math.pi
+            or declination == vehicle.declination
+        ):
+            return
+        vehicle.declination = declination
+        log.info(
+            "%s: declination %.2f° from its COMPASS_DEC", _who(vehicle), math.degrees(declination)
+        )
+        for key, stream in self.streams.items():
+            if (key.system, key.component) == (system, component):
+                stream.estimator.declination = declination
 
     def _corrects_centripetal(self, vehicle: Vehicle, t: float) -> bool:
         mode = self.config.input.centripetal_correction
@@ -414,7 +471,9 @@ class Pipeline:
         system = self.config.output.system_id or vehicle_system
         encoder = self._encoders.get(system)
         if encoder is None:
-            encoder = self._encoders[system] = Encoder(system, self.config.output.component_id)
+            encoder = self._encoders[system] = Encoder(
+                system, self.config.output.component_id, self.signing
+            )
         return encoder
 
     def emit(self, packet: bytes) -> None:
@@ -500,6 +559,37 @@ def _without_centripetal(
     wy = gyro[1] - bias[1]
     wz = gyro[2] - bias[2]
     return (accel[0], accel[1] - wz * airspeed, accel[2] + wy * airspeed)
+
+
+_HEADING_EVENTS = (
+    StepFlags.HEADING_ALIGNED | StepFlags.HEADING_REOPENED | StepFlags.MAG_REFERENCE_CHANGED
+)
+
+
+def _usable_mag(mag: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+    """The magnetometer reading, or None: absent, all zero (no compass fitted), absurd."""
+    if mag is None or mag == (0.0, 0.0, 0.0) or not _plausible(mag, MAX_MAG):
+        return None
+    return mag
+
+
+def _report_heading(stream: Stream, flags: int) -> None:
+    """Say once where heading comes from, and when the magnetometer's role changes."""
+    stats = stream.stats
+    if flags & StepFlags.HEADING_ALIGNED:
+        if not stream.heading_source_reported:
+            log.info("%s: heading from the magnetometer (9-D)", stream.key)
+        stream.heading_source_reported = True
+    elif not stream.heading_source_reported and stats.span >= MAG_WAIT:
+        log.info(
+            "%s: no magnetometer in the IMU messages: heading is free (6-D), yaw will drift",
+            stream.key,
+        )
+        stream.heading_source_reported = True
+    if flags & StepFlags.HEADING_REOPENED:
+        log.info("%s: magnetometer rejected too long: trusting it again", stream.key)
+    if flags & StepFlags.MAG_REFERENCE_CHANGED:
+        log.info("%s: a steady new magnetic field became the reference", stream.key)
 
 
 def _plausible(v: tuple[float, float, float], limit: float) -> bool:

@@ -23,6 +23,7 @@ from typing import TextIO
 from mavest.estimator import Estimator
 from mavest.mavlink.links import Link, make_link, parse_endpoint
 from mavest.mavlink.messages import IMU_MESSAGES
+from mavest.mavlink.signing import Signing
 from mavest.mavlink.tlog import TlogReader, TlogWriter, message_ids
 from mavest.service.config import ServiceConfig
 from mavest.service.pipeline import Pipeline, Stream
@@ -39,7 +40,9 @@ from mavest.viz.viewer import (
 log = logging.getLogger("mavest")
 
 # What replay decodes; every other record is copied to the output tlog undecoded.
-REPLAY_MESSAGES = message_ids([*IMU_MESSAGES, "ATTITUDE", "SIMSTATE", "HEARTBEAT", "VFR_HUD"])
+REPLAY_MESSAGES = message_ids(
+    [*IMU_MESSAGES, "ATTITUDE", "SIMSTATE", "HEARTBEAT", "VFR_HUD", "PARAM_VALUE"]
+)
 
 
 @dataclass
@@ -240,8 +243,12 @@ async def run_live(
     stop: asyncio.Event | None = None,
     status_period: float = 10.0,
     ready: asyncio.Event | None = None,
+    signing: Signing | None = None,
 ) -> RunReport:
-    """Serve until ``stop`` is set (or SIGINT/SIGTERM when ``stop`` is not given)."""
+    """Serve until ``stop`` is set (or SIGINT/SIGTERM when ``stop`` is not given).
+
+    ``signing``: sign what is sent and verify what is heard (MAVLink 2 signing).
+    """
     outputs = outputs or Outputs()
     endpoints = [parse_endpoint(connection, baud)] + [
         parse_endpoint(c, baud) for c in out_connections
@@ -256,7 +263,10 @@ async def run_live(
         out_tlog=opened.tlog,
         sinks=opened.sinks,
         now_us=lambda: time.time_ns() // 1000,
+        signing=signing,
     )
+    if signing is not None:
+        log.info("%s", signing.describe())
     report = RunReport(pipeline, 0.0, source=connection, outputs=outputs)
     tasks: list[asyncio.Task[None]] = []
     start = time.perf_counter()
@@ -332,6 +342,8 @@ def _status(pipeline: Pipeline) -> None:
             stats.answered,
             stats.rejected + stats.duplicates + stats.out_of_order + stats.off_timeline,
         )
+    if pipeline.verifier is not None and pipeline.verifier.dropped:
+        log.info("signing: %s", pipeline.verifier.describe())
 
 
 def format_summary(report: RunReport) -> str:
@@ -376,6 +388,14 @@ def format_summary(report: RunReport) -> str:
             if value
         ]
         lines.append("    " + (", ".join(problems) if problems else "no gaps, nothing rejected"))
+        if stats.mag_samples:
+            used = 100.0 * stats.mag_used / stats.mag_samples
+            lines.append(
+                f"    heading from the magnetometer (9-D): {used:.1f} % of "
+                f"{stats.mag_samples} readings used"
+            )
+        else:
+            lines.append("    no magnetometer: heading free (6-D), yaw drifts")
         settle = pipeline.config.input.settle_time
         for name, comparison in (
             ("truth (SIMSTATE)", stream.vs_truth),
@@ -383,9 +403,15 @@ def format_summary(report: RunReport) -> str:
         ):
             result = comparison.result()
             if result.count:
-                lines.append(f"    vs {name} after {settle:g} s: {result.describe()}")
+                described = result.describe(stream.estimator.heading_referenced)
+                lines.append(f"    vs {name} after {settle:g} s: {described}")
+    if pipeline.verifier is not None:
+        lines.append(f"  signing: {pipeline.verifier.describe()}")
     if pipeline.sent:
-        lines.append(f"  sent {pipeline.sent} messages")
+        signed = (
+            " (signed)" if pipeline.signing is not None and pipeline.signing.sign_outgoing else ""
+        )
+        lines.append(f"  sent {pipeline.sent} messages{signed}")
     for label, path in (("tlog", report.outputs.tlog), ("Rerun recording", report.outputs.rrd)):
         if path is not None:
             lines.append(f"  wrote {path} ({label})")

@@ -18,6 +18,18 @@ from mavest import so3
 from mavest._jit import kernel
 from mavest.estimator.config import STANDARD_GRAVITY, EstimatorConfig
 
+# The Earth's field near Zürich (47.4° N, 8.5° E; WMM 2025, rounded), NED, µT:
+# 48 µT, dip 63°, declination 1.9° east.
+EARTH_FIELD_NED = np.array([21.5, 0.7, 43.0])
+
+
+def earth_field(declination: float, field: np.ndarray = EARTH_FIELD_NED) -> np.ndarray:
+    """``field`` turned about the vertical so that its azimuth is ``declination`` (rad)."""
+    horizontal = math.hypot(field[0], field[1])
+    return np.array(
+        [horizontal * math.cos(declination), horizontal * math.sin(declination), field[2]]
+    )
+
 
 @dataclass(frozen=True)
 class ImuNoise:
@@ -27,6 +39,7 @@ class ImuNoise:
     gyro_bias_random_walk: float = 2e-5  # rad/s²/√Hz
     gyro_bias_sigma: float = math.radians(0.5)  # rad/s, initial bias spread per axis
     accel_noise_density: float = 0.02  # m/s²/√Hz
+    mag_heading_noise_density: float = 0.08  # rad·√s, the field's azimuth
 
     @classmethod
     def matching(cls, config: EstimatorConfig) -> ImuNoise:
@@ -36,6 +49,7 @@ class ImuNoise:
             config.gyro_bias_random_walk,
             config.initial_bias_sigma,
             config.accel_noise_density,
+            config.mag_heading_noise_density,
         )
 
 
@@ -80,6 +94,8 @@ class SimulatedImu:
     bias_true: np.ndarray  # (N, 3) rad/s
     linear_accel: np.ndarray  # (N, 3) m/s², world frame
     velocity: np.ndarray  # (N, 3) m/s, world frame (the bursts' aside)
+    mag: np.ndarray  # (N, 3) µT, the field ``field_ned`` seen in the body, noisy azimuth
+    field_ned: np.ndarray  # (3,) µT
     noise: ImuNoise = field(repr=False)
 
     @property
@@ -191,6 +207,7 @@ def simulate(
     motion: Motion | None = None,
     seed: int = 0,
     gravity: float = STANDARD_GRAVITY,
+    field_ned: np.ndarray = EARTH_FIELD_NED,
 ) -> SimulatedImu:
     """Simulate an IMU at ``rate`` Hz for ``duration`` s.
 
@@ -224,4 +241,15 @@ def simulate(
     specific_force_world = linear - np.array([0.0, 0.0, gravity])
     accel = rotate_to_body(q, specific_force_world)
     accel += rng.normal(0.0, noise.accel_noise_density / math.sqrt(dt), (n, 3))
-    return SimulatedImu(t, gyro, accel, q, bias, linear, velocity, noise)
+    # the magnetometer's error as the filter models it: white noise on the
+    # field's azimuth (its norm and dip stay those of an undisturbed field)
+    field_ned = np.asarray(field_ned, dtype=np.float64)
+    azimuth_noise = np.random.default_rng(seed + 2).normal(
+        0.0, noise.mag_heading_noise_density / math.sqrt(dt), n
+    )
+    cos, sin = np.cos(azimuth_noise), np.sin(azimuth_noise)
+    north = cos * field_ned[0] - sin * field_ned[1]
+    east = sin * field_ned[0] + cos * field_ned[1]
+    field_world = np.column_stack([north, east, np.full(n, field_ned[2])])
+    mag = rotate_to_body(q, field_world)
+    return SimulatedImu(t, gyro, accel, q, bias, linear, velocity, mag, field_ned, noise)

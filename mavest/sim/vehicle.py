@@ -36,12 +36,10 @@ from mavest.mavlink.messages import IMU_FORMATS, MAVLink, mavlink2
 from mavest.mavlink.tlog import TlogWriter
 from mavest.service.signals import stop_on_signals
 from mavest.sim.flight import Flight, FlightModel, ImuErrors, NoisyImu
-from mavest.sim.kinematic import rotate_to_body
+from mavest.sim.kinematic import EARTH_FIELD_NED, rotate_to_body
 
 log = logging.getLogger("mavest")
 
-# The Earth's field near the flight's start (47.4° N, 8.5° E; WMM 2025, rounded), NED, µT.
-EARTH_FIELD_NED = np.array([21.5, 0.7, 43.0])
 BOOT_OFFSET = 20.0  # s the flight controller had been up when the flight starts
 TLOG_EPOCH_US = 1_767_225_600_000_000  # 2026-01-01 00:00 UTC: files are reproducible
 STREAM_MODEL_RATE = 1000.0  # Hz: the streaming vehicle's flight model

@@ -1,0 +1,384 @@
+"""Autopilot onboard logs: the logged IMU samples beside the autopilot's own attitude.
+
+Two formats, one loader each, both returning an :class:`AutopilotLog` in mavest's
+conventions (DESIGN.md, "Conventions"): body FRD, world NED, quaternions (w, x, y, z)
+body → NED, SI units, float64, time in seconds from the first IMU sample.
+
+* ArduPilot dataflash (``.bin``), :func:`load_dataflash`, read with pymavlink's
+  DFReader. IMU samples from ``IMU``/``IMU2``/``IMU3`` (or ``IMU`` with an instance
+  field ``I`` in newer firmware): ``GyrX..Z`` rad/s, ``AccX..Z`` m/s², already rotated
+  by ``AHRS_ORIENTATION`` into the vehicle's FRD frame and corrected by the stored
+  accelerometer/gyro calibration. The reference is ``ATT`` (``Roll``, ``Pitch``,
+  ``Yaw`` in degrees, ZYX Euler angles of the NED attitude). Time is ``TimeUS`` (µs)
+  or, in older firmware such as ArduCopter 3.3, ``TimeMS`` (ms) since boot.
+* PX4 ULog (``.ulg``), :func:`load_ulog`, read with pyulog. IMU samples from
+  ``sensor_combined`` (``gyro_rad`` rad/s, ``accelerometer_m_s2`` m/s², FRD, board
+  rotation already applied), time ``timestamp`` (µs since boot) plus, for the
+  accelerometer, ``accelerometer_timestamp_relative`` (µs). The reference is
+  ``vehicle_attitude.q`` (w, x, y, z, FRD → NED); simulator logs may also hold
+  ``vehicle_attitude_groundtruth`` (same layout), the simulator's true attitude.
+
+ArduPilot's AHRS trim. ``ATT`` is not the attitude of the IMU frame: ArduPilot's EKF
+reports its Euler angles with the ``AHRS_TRIM_X``/``AHRS_TRIM_Y`` parameters (rad)
+subtracted from roll and pitch (``getEulerAngles``: ``euler - trim``), so that a
+level-trimmed vehicle shows 0°. The logged IMU samples are in the untrimmed frame, so
+the loader adds the trim back (``apply_ahrs_trim=True``): on log171 this removes a
+1.18° roll / 0.30° pitch offset that otherwise appears at rest between the
+accelerometer's gravity direction and ``ATT``. Until the EKF is ready (log171: its first
+~9 s) ``ATT`` comes from ArduPilot's DCM filter, which applies the trim as a rotation
+rather than to the angles; near level, with trims of about a degree, the two agree to
+~0.01°.
+
+The samples are kept as logged, calibration errors included: at rest log171's ``IMU``
+reads 9.59 m/s² (``IMU2`` 9.41, ``IMU3`` 9.13), PX4's real board 9.70 m/s².
+
+pymavlink is a runtime dependency; pyulog is a development extra, imported inside
+:func:`load_ulog`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mavest.datasets import require_data
+from mavest.so3 import quats_from_euler_zyx
+
+__all__ = [
+    "DATAFLASH_LOG171",
+    "ULOG_REAL",
+    "ULOG_SIMULATOR",
+    "AutopilotLog",
+    "load_dataflash",
+    "load_ulog",
+    "log_path",
+]
+
+#: The shared logs, relative to the data root (see :func:`log_path`).
+DATAFLASH_LOG171 = "dataflash/dronekit-la-testdata_log171.bin"
+ULOG_REAL = "ulog/pyulog_sample.ulg"
+ULOG_SIMULATOR = "ulog/pyulog_sample_logging_tagged_and_default_params.ulg"
+
+# ArduPilot's older logs have one message type per IMU; newer ones one type with "I".
+_DATAFLASH_IMU_TYPES = {"IMU": 0, "IMU2": 1, "IMU3": 2}
+
+_DATAFLASH_MESSAGE_HEADER = bytes([0xA3, 0x95])
+
+# PX4 marks an accelerometer sample that is missing from a sensor_combined message
+# with this relative timestamp (RELATIVE_TIMESTAMP_INVALID, INT32_MAX).
+_PX4_RELATIVE_TIMESTAMP_INVALID = 2**31 - 1
+
+
+@dataclass(frozen=True)
+class AutopilotLog:
+    """IMU samples and the autopilot's attitude from one onboard log, in mavest conventions.
+
+    Attributes:
+        name: file name without its suffix.
+        autopilot: ``"ArduPilot"`` or ``"PX4"``.
+        t: (N,) IMU sample times in s since the first IMU sample, strictly increasing.
+        gyro: (N, 3) angular rate in rad/s, body FRD.
+        accel: (N, 3) specific force in m/s², body FRD; about (0, 0, −g) at rest, level.
+        reference_t: (M,) times of the autopilot's attitude, s, same time base as ``t``.
+        reference_q: (M, 4) the autopilot's attitude (w, x, y, z), FRD body → NED, in
+            the same body frame as the IMU samples (ArduPilot: trim added back).
+        reference_source: what the reference was read from, e.g. ``"ATT"``.
+        truth_t: (K,) times of the simulator's true attitude, or None if not logged.
+        truth_q: (K, 4) true attitude (w, x, y, z), FRD → NED, or None.
+        boot_time: autopilot time (s since boot) of ``t = 0``.
+        notes: what the loader chose or found (IMU instance, trim, dropped samples).
+    """
+
+    name: str
+    autopilot: str
+    t: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    reference_t: np.ndarray
+    reference_q: np.ndarray
+    reference_source: str
+    truth_t: np.ndarray | None
+    truth_q: np.ndarray | None
+    boot_time: float
+    notes: tuple[str, ...]
+
+    @property
+    def rate(self) -> float:
+        """IMU sampling rate in Hz, from the median step (logs drop the odd sample)."""
+        return 1.0 / float(np.median(np.diff(self.t)))
+
+    @property
+    def duration(self) -> float:
+        """Span of the IMU samples in s."""
+        return float(self.t[-1] - self.t[0])
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def log_path(relative: str) -> Path:
+    """The file ``<data root>/<relative>``, e.g. ``log_path(DATAFLASH_LOG171)``.
+
+    FileNotFoundError naming MAVEST_DATA when the data folder or the file is absent.
+    """
+    folder, _, rest = relative.partition("/")
+    path = require_data(folder) / rest
+    if not path.is_file():
+        raise FileNotFoundError(f"log file {path} does not exist")
+    return path
+
+
+def _existing_file(path: Path | str, kind: str) -> Path:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{kind} {path} does not exist")
+    return path
+
+
+def _increasing(t: np.ndarray) -> np.ndarray:
+    """Mask of the samples whose time is later than every earlier sample's.
+
+    Logs occasionally repeat or reorder a sample; the estimator needs strictly
+    increasing time, so such samples are dropped rather than sorted in.
+    """
+    if t.size == 0:
+        return np.zeros(0, dtype=bool)
+    previous_max = np.maximum.accumulate(np.concatenate(([-np.inf], t[:-1])))
+    return t > previous_max
+
+
+# --------------------------------------------------------------------------
+# ArduPilot dataflash
+# --------------------------------------------------------------------------
+
+
+def _dataflash_time(message: dict[str, Any]) -> float:
+    """Time since boot in s: ``TimeUS`` (µs) in newer firmware, ``TimeMS`` (ms) in older."""
+    if "TimeUS" in message:
+        return float(message["TimeUS"]) * 1e-6
+    if "TimeMS" in message:
+        return float(message["TimeMS"]) * 1e-3
+    raise ValueError(f"{message.get('mavpackettype')} message has neither TimeUS nor TimeMS")
+
+
+def _read_dataflash(path: Path) -> tuple[dict[str, list[dict[str, Any]]], dict[str, float]]:
+    """IMU*, ATT messages (as dicts) and the last value of every parameter."""
+    from pymavlink import mavutil
+
+    types = [*_DATAFLASH_IMU_TYPES, "ATT", "PARM"]
+    messages: dict[str, list[dict[str, Any]]] = {name: [] for name in types if name != "PARM"}
+    parameters: dict[str, float] = {}
+    try:
+        reader = mavutil.mavlink_connection(str(path))
+        while (message := reader.recv_match(type=types)) is not None:
+            kind = message.get_type()
+            if kind == "PARM":
+                parameters[message.Name] = float(message.Value)
+            else:
+                messages[kind].append(message.to_dict())
+    except Exception as error:  # DFReader raises assorted errors on a damaged file
+        raise ValueError(f"{path.name}: not a readable dataflash log ({error})") from error
+    return messages, parameters
+
+
+def load_dataflash(
+    path: Path | str, imu_instance: int = 0, apply_ahrs_trim: bool = True
+) -> AutopilotLog:
+    """Load an ArduPilot dataflash log: one IMU instance and the ``ATT`` attitude.
+
+    Args:
+        path: the ``.bin`` file.
+        imu_instance: 0 for ``IMU`` (the one ArduPilot's EKF uses by default), 1 for
+            ``IMU2``, 2 for ``IMU3``.
+        apply_ahrs_trim: add ``AHRS_TRIM_X``/``_Y`` back to ATT's roll and pitch, so that
+            the reference is the attitude of the IMU frame (see the module docstring).
+
+    Units and frames: ``t`` s since the first sample of that IMU; gyro rad/s and accel
+    m/s² FRD, as logged; the reference from ATT's degrees, ZYX Euler, NED.
+
+    FileNotFoundError if the file is absent; ValueError if it is not a dataflash log or
+    holds no samples of that IMU or no ATT.
+    """
+    if imu_instance not in _DATAFLASH_IMU_TYPES.values():
+        raise ValueError(f"imu_instance must be 0, 1 or 2, got {imu_instance}")
+    path = _existing_file(path, "dataflash log")
+    if path.suffix.lower() != ".bin":
+        raise ValueError(f"{path.name}: expected an ArduPilot dataflash log (.bin)")
+    with path.open("rb") as file:
+        # Every binary dataflash message starts with these two bytes; checking the first
+        # one spares a wrong file DFReader's byte-by-byte "bad header" complaints.
+        if file.read(2) != _DATAFLASH_MESSAGE_HEADER:
+            raise ValueError(f"{path.name}: not an ArduPilot dataflash log (bad first header)")
+    messages, parameters = _read_dataflash(path)
+
+    imu = [
+        m
+        for kind, instance in _DATAFLASH_IMU_TYPES.items()
+        for m in messages[kind]
+        if int(m.get("I", instance)) == imu_instance
+    ]
+    if not imu:
+        raise ValueError(f"{path.name}: no samples of IMU instance {imu_instance}")
+    if not messages["ATT"]:
+        raise ValueError(f"{path.name}: no ATT messages (the autopilot's attitude)")
+    imu_kind = imu[0]["mavpackettype"]
+
+    imu_boot_t = np.array([_dataflash_time(m) for m in imu])
+    keep = _increasing(imu_boot_t)
+    imu = [m for m, k in zip(imu, keep, strict=True) if k]
+    imu_boot_t = imu_boot_t[keep]
+    gyro = np.array([[m["GyrX"], m["GyrY"], m["GyrZ"]] for m in imu], dtype=np.float64)
+    accel = np.array([[m["AccX"], m["AccY"], m["AccZ"]] for m in imu], dtype=np.float64)
+
+    att = messages["ATT"]
+    att_boot_t = np.array([_dataflash_time(m) for m in att])
+    att_keep = _increasing(att_boot_t)
+    euler_deg = np.array([[m["Roll"], m["Pitch"], m["Yaw"]] for m in att], dtype=np.float64)
+    euler_deg = euler_deg[att_keep]
+    notes = [
+        f"IMU instance {imu_instance} ({imu_kind}), {len(imu)} samples",
+        f"t = 0 is {imu_boot_t[0]:.3f} s after boot",
+    ]
+    if not np.all(keep) or not np.all(att_keep):
+        notes.append(
+            f"dropped {int(np.sum(~keep))} IMU and {int(np.sum(~att_keep))} ATT samples "
+            "whose time did not increase"
+        )
+    trim_x = parameters.get("AHRS_TRIM_X", 0.0)
+    trim_y = parameters.get("AHRS_TRIM_Y", 0.0)
+    reference_source = "ATT"
+    if apply_ahrs_trim and (trim_x or trim_y):
+        # The EKF logs euler − trim; adding the trim back gives the IMU frame's angles.
+        euler_deg[:, 0] += np.degrees(trim_x)
+        euler_deg[:, 1] += np.degrees(trim_y)
+        reference_source = "ATT + AHRS_TRIM"
+        notes.append(
+            f"AHRS_TRIM_X {np.degrees(trim_x):.2f}°, AHRS_TRIM_Y {np.degrees(trim_y):.2f}° "
+            "added to ATT roll, pitch"
+        )
+    elif trim_x or trim_y:
+        notes.append("AHRS trim not applied: ATT is the trimmed vehicle frame")
+
+    t0 = float(imu_boot_t[0])
+    return AutopilotLog(
+        name=path.stem,
+        autopilot="ArduPilot",
+        t=imu_boot_t - t0,
+        gyro=gyro,
+        accel=accel,
+        reference_t=att_boot_t[att_keep] - t0,
+        reference_q=quats_from_euler_zyx(np.radians(euler_deg)),
+        reference_source=reference_source,
+        truth_t=None,
+        truth_q=None,
+        boot_time=t0,
+        notes=tuple(notes),
+    )
+
+
+# --------------------------------------------------------------------------
+# PX4 ULog
+# --------------------------------------------------------------------------
+
+
+def _ulog_columns(data: dict[str, np.ndarray], field: str, count: int) -> np.ndarray:
+    """(N, count) float64 from a ULog array field stored as ``field[0]``, ``field[1]``, ..."""
+    return np.column_stack([data[f"{field}[{i}]"] for i in range(count)]).astype(np.float64)
+
+
+def _ulog_quaternions(data: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Times (µs) and normalised (w, x, y, z) quaternions of a vehicle_attitude-like topic.
+
+    ``timestamp_sample`` (the IMU sample the estimate belongs to) is used where newer
+    PX4 fills it in; it is 0 in topics that do not (e.g. the simulator's ground truth),
+    and older PX4 has only ``timestamp``.
+    """
+    sample = data.get("timestamp_sample")
+    if sample is not None and np.all(sample > 0):
+        t_us = sample.astype(np.int64)
+    else:
+        t_us = data["timestamp"].astype(np.int64)
+    q = _ulog_columns(data, "q", 4)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)  # logged as float32
+    return t_us, q
+
+
+def _topics(ulog: Any) -> dict[str, dict[str, np.ndarray]]:
+    return {d.name: d.data for d in ulog.data_list if d.multi_id == 0}
+
+
+def load_ulog(path: Path | str) -> AutopilotLog:
+    """Load a PX4 ULog: ``sensor_combined``, ``vehicle_attitude`` and, if logged, truth.
+
+    Units and frames: ``t`` s since the first ``sensor_combined`` sample (gyro time);
+    gyro rad/s and accel m/s², FRD, as logged. The accelerometer sample of a message
+    may lag or lead the gyro by ``accelerometer_timestamp_relative`` µs; both share the
+    gyro's time here (the offset is recorded in ``notes``), and messages whose
+    accelerometer part is marked invalid are dropped. ``vehicle_attitude`` and
+    ``vehicle_attitude_groundtruth`` quaternions are (w, x, y, z) FRD → NED already.
+
+    FileNotFoundError if the file is absent; ValueError if it is not a ULog or lacks
+    ``sensor_combined`` or ``vehicle_attitude``. A missing ground truth is not an error:
+    ``truth_t``/``truth_q`` are None and ``notes`` says so.
+    """
+    from pyulog import ULog  # development extra: only this loader needs it
+
+    path = _existing_file(path, "ULog file")
+    wanted = ["sensor_combined", "vehicle_attitude", "vehicle_attitude_groundtruth"]
+    try:
+        ulog = ULog(str(path), wanted)
+    except Exception as error:  # pyulog raises bare Exceptions on a bad header
+        raise ValueError(f"{path.name}: not a readable ULog file ({error})") from error
+    topics = _topics(ulog)
+    for required in ("sensor_combined", "vehicle_attitude"):
+        if required not in topics:
+            raise ValueError(f"{path.name}: no {required} topic in this log")
+
+    sensors = topics["sensor_combined"]
+    gyro_t_us = sensors["timestamp"].astype(np.int64)
+    accel_offset_us = sensors.get(
+        "accelerometer_timestamp_relative", np.zeros_like(gyro_t_us)
+    ).astype(np.int64)
+    valid = (accel_offset_us != _PX4_RELATIVE_TIMESTAMP_INVALID) & _increasing(gyro_t_us)
+    if not np.any(valid):
+        raise ValueError(f"{path.name}: sensor_combined has no valid samples")
+    gyro = _ulog_columns(sensors, "gyro_rad", 3)[valid]
+    accel = _ulog_columns(sensors, "accelerometer_m_s2", 3)[valid]
+    t0_us = int(gyro_t_us[valid][0])
+
+    notes = [
+        f"sensor_combined, {int(np.sum(valid))} samples",
+        f"t = 0 is {t0_us * 1e-6:.3f} s after boot",
+        "accelerometer_timestamp_relative up to "
+        f"{int(np.max(np.abs(accel_offset_us[valid])))} µs (accel paired with gyro time)",
+    ]
+    if not np.all(valid):
+        notes.append(f"dropped {int(np.sum(~valid))} sensor_combined samples (invalid/repeated)")
+
+    reference_t_us, reference_q = _ulog_quaternions(topics["vehicle_attitude"])
+    keep = _increasing(reference_t_us)
+    truth_t = truth_q = None
+    if "vehicle_attitude_groundtruth" in topics:
+        truth_t_us, truth_q = _ulog_quaternions(topics["vehicle_attitude_groundtruth"])
+        truth_keep = _increasing(truth_t_us)
+        truth_t, truth_q = (truth_t_us[truth_keep] - t0_us) * 1e-6, truth_q[truth_keep]
+    else:
+        notes.append("no vehicle_attitude_groundtruth (not a simulator log)")
+
+    return AutopilotLog(
+        name=path.stem,
+        autopilot="PX4",
+        t=(gyro_t_us[valid] - t0_us) * 1e-6,
+        gyro=gyro,
+        accel=accel,
+        reference_t=(reference_t_us[keep] - t0_us) * 1e-6,
+        reference_q=reference_q[keep],
+        reference_source="vehicle_attitude",
+        truth_t=truth_t,
+        truth_q=truth_q,
+        boot_time=t0_us * 1e-6,
+        notes=tuple(notes),
+    )

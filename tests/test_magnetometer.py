@@ -1,0 +1,230 @@
+"""The magnetometer heading update: its model against finite differences, heading-only
+corrections, disturbance rejection, and accuracy on BROAD 9-D beside VQF and on real tlogs."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mavest import EstimatorConfig, estimate
+from mavest.datasets import DATA_ENV_VAR, data_root
+from mavest.estimator import Estimator, magnetic
+from mavest.estimator.layout import StepFlags
+from mavest.evaluation.metrics import attitude_errors, rmse_deg, signed_heading_error
+from mavest.sim.kinematic import ImuNoise, Motion, earth_field, simulate
+
+FIELD_DIP = 1.1  # rad, as far north as central Europe's 63° and then some
+
+
+def _quat_wxyz(rotation: Rotation) -> np.ndarray:
+    return rotation.as_quat()[[3, 0, 1, 2]]
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("error", [0, 1], ids=["left", "right"])
+def test_heading_jacobian_matches_finite_differences(seed: int, error: int) -> None:
+    """H of the field's azimuth in the estimated world frame, against central differences
+    of the azimuth computed with scipy's rotations for R = Exp(δ) R̄ (left) or R̄ Exp(δ)."""
+    estimate_rotation = Rotation.random(random_state=seed)
+    declination = 0.3 - 0.2 * seed
+    field = np.array(
+        [
+            math.cos(FIELD_DIP) * math.cos(declination),
+            math.cos(FIELD_DIP) * math.sin(declination),
+            math.sin(FIELD_DIP),
+        ]
+    )
+
+    def azimuth(delta: np.ndarray) -> float:
+        error_rotation = Rotation.from_rotvec(delta)
+        truth = (
+            error_rotation * estimate_rotation if error == 0 else estimate_rotation * error_rotation
+        )
+        u = estimate_rotation.apply(truth.inv().apply(field))
+        return math.atan2(u[1], u[0])
+
+    step = 1e-6
+    numeric = [(azimuth(step * e) - azimuth(-step * e)) / (2 * step) for e in np.eye(3)]
+    H = np.empty(3)
+    magnetic.heading_jacobian_into(
+        _quat_wxyz(estimate_rotation), FIELD_DIP, declination, error, np.empty((3, 3)), H
+    )
+    np.testing.assert_allclose(H, numeric, atol=1e-7)
+
+
+def test_calibration_is_ardupilots_offsets_then_soft_iron() -> None:
+    config = EstimatorConfig(
+        compass_ofs=(10.0, -20.0, 30.0),
+        compass_dia=(1.1, 0.9, 1.05),
+        compass_odi=(0.02, -0.03, 0.01),
+    )
+    raw = np.array([12.0, -7.0, 40.0])
+    offsets = np.array(config.compass_ofs) * 0.1  # mGauss → µT
+    A = np.array([[1.1, 0.02, -0.03], [0.02, 0.9, 0.01], [-0.03, 0.01, 1.05]])
+    out = np.empty(3)
+    magnetic.calibrate_into(raw, offsets, config.soft_iron, out)
+    np.testing.assert_allclose(out, A @ (raw + offsets), rtol=1e-14)
+
+
+def _flight(seconds: float = 60.0, declination: float = 0.2, seed: int = 3):
+    """A kinematic flight with a magnetometer quieter than the filter assumes (1° per sample
+    at 100 Hz, as a real one; the filter's density also covers slow field errors)."""
+    config = EstimatorConfig(compass_dec=declination)
+    noise = ImuNoise(mag_heading_noise_density=0.0017)
+    data = simulate(seconds, 100.0, noise, seed=seed, field_ned=earth_field(declination))
+    return config, data
+
+
+def test_magnetometer_sets_and_holds_heading_with_declination() -> None:
+    config, data = _flight()
+    with_mag = estimate(data.t, data.gyro, data.accel, data.mag, config=config)
+    without = estimate(data.t, data.gyro, data.accel, config=config)
+    heading = np.degrees(np.abs(signed_heading_error(with_mag.q, data.q_true)))
+    assert with_mag.flags[0] & StepFlags.HEADING_ALIGNED
+    assert np.sqrt(np.mean(heading[1000:] ** 2)) < 3.0  # after 10 s
+    assert with_mag.mag_used[1000:].mean() > 0.99
+    # 6-D: heading starts at 0 whatever the truth (the flight starts at a random yaw)
+    free = np.degrees(np.abs(signed_heading_error(without.q, data.q_true)))
+    assert free[1000:].mean() > 10.0
+    assert not np.any(without.mag_used)
+
+
+def test_heading_update_never_moves_tilt() -> None:
+    """From the same state, a sample with a (wildly disturbed) field and one without give
+    the same gravity direction R̄ᵀe₃: the magnetometer corrected heading only."""
+    config, data = _flight(20.0)
+    rng = np.random.default_rng(0)
+    for k in rng.integers(300, len(data.t) - 1, 8):
+        reference = Estimator(
+            config.replace(mag_gate=0.0, mag_norm_tolerance=10.0, mag_dip_tolerance=4.0)
+        )
+        reference.update_batch(data.t[:k], data.gyro[:k], data.accel[:k], data.mag[:k])
+        fed = Estimator(reference.config)
+        fed._bind(reference._state.copy())
+        disturbed = Rotation.from_rotvec(rng.normal(0.0, 1.0, 3)).apply(data.mag[k]) * 1.5
+        a = fed.update(data.t[k], data.gyro[k], data.accel[k], disturbed)
+        b = reference.update(data.t[k], data.gyro[k], data.accel[k])
+        assert a.mag_used and not b.mag_used
+        down_a = Rotation.from_quat(a.q[[1, 2, 3, 0]]).inv().apply([0.0, 0.0, 1.0])
+        down_b = Rotation.from_quat(b.q[[1, 2, 3, 0]]).inv().apply([0.0, 0.0, 1.0])
+        np.testing.assert_allclose(down_a, down_b, atol=1e-12)
+        assert abs(signed_heading_error(a.q, b.q)) > 1e-6  # but heading did move
+
+
+def test_passing_magnet_is_rejected_and_a_new_place_becomes_the_reference() -> None:
+    config, data = _flight(90.0)
+    mag = data.mag.copy()
+    magnet = (data.t >= 20.0) & (data.t < 30.0)
+    mag[magnet] += np.array([30.0, -20.0, 10.0])  # attached for 10 s: hard iron in the body
+    moved = data.t >= 50.0  # a place whose field is 30 % stronger, for good
+    mag[moved] *= 1.3
+    out = estimate(data.t, data.gyro, data.accel, mag, config=config)
+    disturbed = (out.flags & StepFlags.MAG_DISTURBED) != 0
+    assert disturbed[magnet].mean() > 0.95
+    assert not out.mag_used[magnet].any()
+    heading = np.degrees(np.abs(signed_heading_error(out.q, data.q_true)))
+    assert heading[magnet].max() < 8.0  # the gyro carried heading through
+    trusting = config.replace(mag_gate=0.0, mag_norm_tolerance=10.0, mag_dip_tolerance=4.0)
+    fooled = estimate(data.t, data.gyro, data.accel, mag, config=trusting)
+    fooled_heading = np.degrees(np.abs(signed_heading_error(fooled.q, data.q_true)))
+    assert fooled_heading[magnet].max() > 2.0 * heading[magnet].max()
+    changed = np.flatnonzero(out.flags & StepFlags.MAG_REFERENCE_CHANGED)
+    assert changed.size == 1 and 69.0 < data.t[changed[0]] < 72.0  # 20 s steady, then adopted
+    assert out.mag_used[data.t > 73.0].mean() > 0.99
+    assert np.sqrt(np.mean(heading[data.t > 73.0] ** 2)) < 3.0
+
+
+def test_service_uses_the_vehicles_declination_and_says_when_heading_is_free(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from mavest.mavlink.tlog import TlogWriter
+    from mavest.service.config import ServiceConfig
+    from mavest.service.runners import replay
+    from mavest.sim.vehicle import AUTOPILOTS, VehicleEncoder
+
+    data = simulate(20.0, 50.0, motion=Motion.static(), seed=1)
+    path = tmp_path / "no_compass.tlog"
+    encoder = VehicleEncoder(AUTOPILOTS["ardupilot"])
+    with TlogWriter(path) as tlog:
+        for i, t in enumerate(data.t):
+            tlog.write(
+                int(1e6 * (1e9 + t)),
+                encoder.imu(t + 1.0, data.gyro[i], data.accel[i], 0 * data.mag[i]),
+            )
+    caplog.set_level("INFO", logger="mavest")
+    report = asyncio.run(replay(path, ServiceConfig()))
+    assert "heading is free (6-D)" in caplog.text
+    (stream,) = report.pipeline.streams.values()
+    assert stream.stats.mag_samples == 0 and not stream.estimator.heading_referenced
+
+
+# --------------------------------------------------------------------------
+# Real data (skip without it)
+# --------------------------------------------------------------------------
+
+
+def _data(folder: str) -> Path:
+    root = data_root()
+    if root is None or not (root / folder).is_dir():
+        pytest.skip(f"{folder}/ not found: set {DATA_ENV_VAR} (default: ../shared/data)")
+    return root / folder
+
+
+def test_broad_9d_beside_vqf() -> None:
+    pytest.importorskip("h5py", reason="h5py (dev extra) is needed to read BROAD")
+    vqf = pytest.importorskip("vqf", reason="vqf (dev extra) is the reference")
+    del vqf
+    from mavest.datasets.broad import list_trials, load_trial
+    from mavest.evaluation.peers import run_vqf
+
+    totals, peers, magnet = [], [], []
+    for path in list_trials(_data("broad")):
+        trial = load_trial(path)
+        q = estimate(trial.t, trial.gyro, trial.accel, trial.mag).q
+        ours = rmse_deg(q, trial.truth_q, trial.movement)
+        theirs = rmse_deg(
+            run_vqf(trial.t, trial.gyro, trial.accel, trial.mag, trial.rate),
+            trial.truth_q,
+            trial.movement,
+        )
+        totals.append(ours["total"])
+        peers.append(theirs["total"])
+        if "attached_magnet" in trial.name:
+            magnet.append((ours["heading"], ours["inclination"]))
+    assert len(totals) == 22
+    # measured: 2.00° against VQF's 2.28° (0.88×); the issue asks for ≤ 1.2×
+    assert np.mean(totals) <= 1.0 * np.mean(peers)
+    assert all(heading < 4.0 and inclination < 1.0 for heading, inclination in magnet)
+
+
+@pytest.mark.parametrize(
+    "name, bound",
+    [("MUN-RoboSub_nav_mav", 4.0), ("squilter_gridlines_logs_mav", 5.0)],
+)
+def test_static_tlog_heading_agrees_with_the_autopilot(name: str, bound: float) -> None:
+    """Static ArduPilot logs (RAW_IMU at 4 Hz, mG): our yaw against the autopilot's
+    ATTITUDE.yaw after 10 s (measured 2.8° and 3.7°)."""
+    from mavest.service.config import ServiceConfig
+    from mavest.service.runners import replay
+
+    report = asyncio.run(replay(_data("tlogs") / f"{name}.tlog", ServiceConfig()))
+    (stream,) = [s for s in report.pipeline.streams.values() if s.primary]
+    assert stream.estimator.heading_referenced
+    result = stream.vs_autopilot.result()
+    assert result.count > 200
+    assert result.yaw_rms < bound
+    assert result.inclination_rms < 2.5
+
+
+def test_inclination_is_not_hurt_by_the_magnetometer() -> None:
+    config, data = _flight(60.0)
+    a = attitude_errors(
+        estimate(data.t, data.gyro, data.accel, data.mag, config=config).q, data.q_true
+    )
+    b = attitude_errors(estimate(data.t, data.gyro, data.accel, config=config).q, data.q_true)
+    assert np.sqrt(np.mean(a.inclination**2)) < 1.1 * np.sqrt(np.mean(b.inclination**2))
