@@ -1054,6 +1054,25 @@ def _align_heading(s: StateRecord, c: CoefficientsRecord, azimuth: float, var: f
 
 
 @kernel
+def _start_reference(
+    s: StateRecord, c: CoefficientsRecord, norm: float, dip: float, learned: float
+) -> None:
+    """Heading has just been set: learn the reference field afresh from this sample.
+
+    ``learned`` is how long this sample already counts for in the reference's
+    running mean (0: the next learning step takes it in).
+    """
+    s.mag_state = 1
+    s.mag_ref_norm = norm
+    s.mag_ref_dip = dip
+    s.mag_learn_time = learned
+    s.mag_candidate_time = 0.0
+    s.mag_lp_norm = norm
+    s.mag_lp_dip = dip
+    s.mag_clear_time = c.mag_recovery_time
+
+
+@kernel
 def _track_reference(
     s: StateRecord, c: CoefficientsRecord, norm: float, dip: float, dt: float
 ) -> bool:
@@ -1067,10 +1086,6 @@ def _track_reference(
     its own running mean) for mag_new_reference_time becomes the reference:
     the vehicle moved somewhere else, the field did not pass by.
     """
-    if s.mag_state == 1 and s.mag_learn_time == 0.0:  # heading given by initialise()
-        s.mag_lp_norm = norm
-        s.mag_lp_dip = dip
-        s.mag_clear_time = c.mag_recovery_time
     alpha = min(dt / _MAG_CHECK_TIME, 1.0)
     s.mag_lp_norm += alpha * (norm - s.mag_lp_norm)
     s.mag_lp_dip += alpha * (dip - s.mag_lp_dip)
@@ -1139,20 +1154,14 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
     s.t_mag = t
     if s.mag_state == 0:
         _align_heading(s, c, azimuth, c.mag_heading_var_density / dt_mag)
-        s.mag_state = 1
-        s.mag_ref_norm = norm
-        s.mag_ref_dip = dip
-        s.mag_learn_time = dt_mag
-        s.mag_candidate_time = 0.0
-        s.mag_lp_norm = norm
-        s.mag_lp_dip = dip
-        s.mag_clear_time = c.mag_recovery_time
+        _start_reference(s, c, norm, dip, dt_mag)
         s.t_mag_used = t
         s.heading_innovation = magnetic.wrap(azimuth - c.mag_declination)
         s.mag_used = 1
         s.flags |= _HEADING_ALIGNED
         return
-    if s.t_mag_used == -math.inf:  # heading given by initialise(): nothing rejected yet
+    if s.t_mag_used == -math.inf:  # heading given by initialise(): the first field seen
+        _start_reference(s, c, norm, dip, 0.0)
         s.t_mag_used = t
     disturbed = _track_reference(s, c, norm, dip, dt_mag)
     s.mag_clear_time = 0.0 if disturbed else s.mag_clear_time + dt_mag
@@ -1190,11 +1199,9 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
         for j in range(3):
             S += (s.w_v3[i] - H[i]) * P[i, j] * (s.w_v3[j] - H[j])
     for i in range(n):
-        acc = P[i, 0] * H[0] + P[i, 1] * H[1] + P[i, 2] * H[2]
-        C[i, 0] = acc
-        K[i, 0] = acc
+        C[i, 0] = P[i, 0] * H[0] + P[i, 1] * H[1] + P[i, 2] * H[2]
         if i < 3:
-            S += H[i] * acc
+            S += H[i] * C[i, 0]
     nis = nu * nu / S
     s.heading_innovation = nu
     s.heading_nis = nis
@@ -1206,17 +1213,16 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
         s.flags |= _MAG_REJECTED
         s.mag_disturbances += 1
         return
-    # K = (P H_ψᵀ) / S with the tilt rows zeroed in the world frame
-    # (considered), and the considered low-pass states' rows zeroed as in
-    # every update
+    # K = C / S with the tilt rows zeroed in the world frame (considered), and
+    # the considered low-pass states' rows zeroed as in every update
     _error_frame_from_world(s, c)  # M: world → error frame; K_world = Mᵀ K_θ
     M = s.w_m33
-    vertical = M[0, 2] * K[0, 0] + M[1, 2] * K[1, 0] + M[2, 2] * K[2, 0]
+    vertical = M[0, 2] * C[0, 0] + M[1, 2] * C[1, 0] + M[2, 2] * C[2, 0]
     for i in range(n):
         if i < 3:
             K[i, 0] = M[i, 2] * vertical / S
         elif i < _EPS:
-            K[i, 0] = K[i, 0] / S
+            K[i, 0] = C[i, 0] / S
         else:
             K[i, 0] = 0.0
     s.w_Sm[0, 0] = S
