@@ -1,6 +1,6 @@
-"""BROAD 6-D inclination RMSE, per trial and mean: mavest beside VQF and other peers.
+"""BROAD 6-D inclination (or 9-D total) RMSE, per trial and mean: mavest beside VQF and others.
 
-    .venv/bin/python tools/accuracy.py [--peers VQF Fusion] [--variants] [--markdown]
+    .venv/bin/python tools/accuracy.py [--peers VQF Fusion] [--variants] [--mag] [--markdown]
 
 Reads the BROAD trials from $MAVEST_DATA/broad (default ../shared/data/broad),
 runs every filter on the same samples in the same run and scores them as the
@@ -44,6 +44,16 @@ def main(argv: list[str] | None = None) -> int:
         help="peer filters to run (default: VQF Fusion; Madgwick and Mahony are slow)",
     )
     parser.add_argument("--variants", action="store_true", help="also mavest's variants")
+    parser.add_argument(
+        "--mag",
+        action="store_true",
+        help="9-D: every filter also gets the magnetometer; scores total RMSE (see --metric)",
+    )
+    parser.add_argument(
+        "--metric",
+        choices=["inclination", "heading", "total"],
+        help="what to score (default: inclination in 6-D, total with --mag)",
+    )
     parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
     args = parser.parse_args(argv)
 
@@ -57,12 +67,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     trials = [load_trial(p) for p in paths]
 
-    filters = {"mavest": mavest_filter()}
+    metric = args.metric or ("total" if args.mag else "inclination")
+    filters = {"mavest": mavest_filter(mag=args.mag)}
     if args.variants:
-        filters |= {name: mavest_filter(config) for name, config in VARIANTS.items()}
+        filters |= {name: mavest_filter(config, args.mag) for name, config in VARIANTS.items()}
     for name in args.peers:
-        filters[name] = peer_filter(name)
-    result = score_inclination(trials, filters)
+        filters[name] = peer_filter(name, args.mag)
+    result = score_inclination(trials, filters, metric)
 
     names = list(filters)
     even = [i for i, t in enumerate(result.trials) if int(t[:2]) % 2 == 0]
@@ -86,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
                 *(f"{int(np.sum(result.scores[n] <= vqf))}/{len(vqf)}" for n in names),
             ]
         )
-    header = ["BROAD trial (6-D inclination RMSE, °)", *names]
+    header = [f"BROAD trial ({'9' if args.mag else '6'}-D {metric} RMSE, °)", *names]
     _print_table(header, rows + summary, args.markdown)
     return 0
 

@@ -19,28 +19,30 @@ from mavest.evaluation.peers import PEERS
 Filter = Callable[[BroadTrial], np.ndarray]
 
 
-def mavest_filter(config: EstimatorConfig | None = None) -> Filter:
-    """mavest in 6-D (gyro and accelerometer) with ``config`` (None: the defaults)."""
+def mavest_filter(config: EstimatorConfig | None = None, mag: bool = False) -> Filter:
+    """mavest in 6-D (gyro and accelerometer), or 9-D with ``mag``, with ``config``."""
 
     def run(trial: BroadTrial) -> np.ndarray:
-        return estimate(trial.t, trial.gyro, trial.accel, config=config).q
+        return estimate(trial.t, trial.gyro, trial.accel, trial.mag if mag else None, config).q
 
     return run
 
 
-def peer_filter(name: str) -> Filter:
-    """A peer from :data:`mavest.evaluation.peers.PEERS` in 6-D, at the trial's rate."""
+def peer_filter(name: str, mag: bool = False) -> Filter:
+    """A peer from :data:`mavest.evaluation.peers.PEERS` in 6-D (9-D with ``mag``), at the
+    trial's rate."""
     adapter = PEERS[name]
 
     def run(trial: BroadTrial) -> np.ndarray:
-        return adapter(trial.t, trial.gyro, trial.accel, None, trial.rate)
+        return adapter(trial.t, trial.gyro, trial.accel, trial.mag if mag else None, trial.rate)
 
     return run
 
 
 @dataclass(frozen=True)
 class InclinationScores:
-    """Per-trial inclination RMSE (°) of each filter, trials in the same order for all."""
+    """Per-trial RMSE (°, inclination unless scored otherwise) of each filter, trials in
+    the same order for all."""
 
     trials: tuple[str, ...]
     scores: dict[str, np.ndarray]
@@ -51,12 +53,13 @@ class InclinationScores:
 
 
 def score_inclination(
-    trials: Sequence[BroadTrial], filters: dict[str, Filter]
+    trials: Sequence[BroadTrial], filters: dict[str, Filter], metric: str = "inclination"
 ) -> InclinationScores:
-    """Every filter on every trial, scored as BROAD does."""
+    """Every filter on every trial, scored as BROAD does (``metric``: "inclination",
+    "heading" or "total", the keys of :func:`~mavest.evaluation.metrics.rmse_deg`)."""
     scores = {
         name: np.array(
-            [rmse_deg(run(trial), trial.truth_q, trial.movement)["inclination"] for trial in trials]
+            [rmse_deg(run(trial), trial.truth_q, trial.movement)[metric] for trial in trials]
         )
         for name, run in filters.items()
     }
