@@ -28,9 +28,10 @@ measured first: on BROAD's fast rotations (600 °/s, magnetometer azimuth
 errors of 17° RMS against the truth) the tilt–heading correlation it leans on,
 amplified by tan(dip) ≈ 2.6, pulled heading 20° off, against 1.7° for this
 gain. The price: the leak is a slowly varying error, not white, and treating
-it as white leaves the heading variance ~1.4× optimistic in the Monte Carlo
-(tools/consistency.py, 9-D scenarios); the Joseph form with the full H and
-this gain is honest but diverges on BROAD. This is the magnetometer half of
+it as white leaves the heading variance optimistic while a large heading
+error converges (tools/consistency.py: ``small_9d`` in band, ``large_heading_9d``
+not); the Joseph form with the full H and this gain is honest but diverges on
+BROAD. This is the magnetometer half of
 VQF's idea (Laidig & Seel 2023: heading corrected in the 6-D earth frame),
 made a Kalman update.
 """
