@@ -26,10 +26,13 @@ from mavest.viz.viewer import rerun_binary
 
 PROJECT = Path(__file__).resolve().parents[1]
 
-# Tilt error the estimator reaches on the turning JSBSim flight with the airspeed
-# correction (1.6–3.4° RMS over seeds; 18–22° without it, VQF alike). The 1°
-# needs velocity aiding with a heading reference: see the README's known limits.
-TURNING_FLIGHT_TILT_BOUND = 4.0  # deg
+# Tilt error the estimator reaches on the turning JSBSim flights with GPS velocity
+# aiding: 0.6–1.0° RMS on most, 1.76° on seed 3 over 10–40 s (its first turn comes
+# before the gyro bias has settled, and the accelerometer bias, 0.08 m/s² there, is not
+# estimated); airspeed alone 2.2–3°, nothing 13–22°. See the README's known limits.
+TURNING_FLIGHT_TILT_BOUND = 2.0  # deg
+# The bound, which the live run (seed 2) meets.
+LIVE_TILT_BOUND = 1.0  # deg
 
 
 def _messages(path: Path) -> list:
@@ -91,13 +94,16 @@ def test_px4_flavour_is_estimated_from_highres_imu(tmp_path: Path) -> None:
     assert stream.vs_truth.result().inclination_rms < TURNING_FLIGHT_TILT_BOUND
 
 
-def test_airspeed_correction_is_what_makes_turns_work(flight_1khz: Path) -> None:
-    off = ServiceConfig().replace(input={"centripetal_correction": "off"})
-    with_correction = asyncio.run(replay(flight_1khz, ServiceConfig()))
-    without = asyncio.run(replay(flight_1khz, off))
-    tilt_with = with_correction.streams[0].vs_truth.result().inclination_rms
-    tilt_without = without.streams[0].vs_truth.result().inclination_rms
-    assert tilt_without > 3.0 * tilt_with
+def test_acceleration_aiding_is_what_makes_turns_work(flight_1khz: Path) -> None:
+    tilt = {}
+    for mode in ("auto", "airspeed", "off"):
+        config = ServiceConfig().replace(input={"acceleration_aiding": mode})
+        (stream,) = asyncio.run(replay(flight_1khz, config)).streams
+        tilt[mode] = stream.vs_truth.result().inclination_rms
+        aided = stream.stats.gps_aided / stream.stats.estimated
+        assert aided > 0.99 if mode == "auto" else aided == 0.0
+    # GPS velocity (auto) beats the airspeed's centripetal term, which beats nothing
+    assert tilt["auto"] < tilt["airspeed"] < tilt["off"] / 3.0, tilt
 
 
 def _real_tlogs() -> list[Path]:
@@ -147,7 +153,7 @@ def test_live_loopback_udp_500hz(tmp_path: Path) -> None:
     assert report.answered_fraction >= 0.99, report.describe()
     assert report.answerers == ["1/191"]
     assert report.scored > 0.7 * report.sent  # scored after 5 s
-    assert max(report.roll_rms, report.pitch_rms) < TURNING_FLIGHT_TILT_BOUND, report.describe()
+    assert max(report.roll_rms, report.pitch_rms) < LIVE_TILT_BOUND, report.describe()
     assert "RAW_IMU[0] from 1/1 → ATTITUDE" in summary
     # the file written live is a valid tlog holding the input and our answers
     counts = Counter((m.get_type(), m.get_srcComponent()) for m in _messages(live_tlog))

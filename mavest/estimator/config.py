@@ -108,6 +108,14 @@ class EstimatorConfig:
     # correlation time.
     velocity_sigma: float = 1.5  # m/s
     velocity_time: float = 1.0  # s
+    # When the vehicle's acceleration is known (``linear_accel``, e.g. from GPS
+    # velocity) it is removed from the specific force and what is left is the
+    # error of that knowledge (the GPS velocity's error and its lag): the same
+    # Gauss–Markov velocity model with this σ.
+    aided_velocity_sigma: float = 0.3  # m/s
+    # ... used only while heading is known to within this (1σ): the acceleration
+    # is known in the world frame and must be turned into the body.
+    aided_max_heading_sigma: float = math.radians(10.0)  # rad
 
     # Rest detection (VQF's criteria) and, at rest, a zero-rate update of the bias.
     rest_detection: bool = True
@@ -186,6 +194,8 @@ class EstimatorConfig:
             "sigma_spread",
             "velocity_sigma",
             "velocity_time",
+            "aided_velocity_sigma",
+            "aided_max_heading_sigma",
             "mag_heading_noise_density",
             "mag_reopened_heading_sigma",
             "mag_norm_tolerance",

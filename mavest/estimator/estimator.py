@@ -38,6 +38,9 @@ def _step_scalars(
     mx: float,
     my: float,
     mz: float,
+    lx: float,
+    ly: float,
+    lz: float,
 ) -> tuple[float, float, bool, int, int, bool, float, float, bool]:
     """One step; the sample comes as scalars, which cross into numba far faster than arrays."""
     s = state[0]
@@ -51,7 +54,10 @@ def _step_scalars(
     sample[6] = mx
     sample[7] = my
     sample[8] = mz
-    step(s, coefficients[0], t, sample[:3], sample[3:6], sample[6:])
+    sample[9] = lx
+    sample[10] = ly
+    sample[11] = lz
+    step(s, coefficients[0], t, sample[:3], sample[3:6], sample[6:9], sample[9:])
     return (
         s.t,
         s.nis,
@@ -74,7 +80,9 @@ def _compiled_step(state: np.ndarray, coefficients: np.ndarray) -> Callable[...,
     differs (it is not a documented interface).
     """
     nan = math.nan
-    _step_scalars(state.copy(), coefficients, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.8, nan, nan, nan)
+    _step_scalars(
+        state.copy(), coefficients, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.8, nan, nan, nan, nan, nan, nan
+    )
     try:
         signature = next(iter(_step_scalars.overloads))
         return _step_scalars.overloads[signature].entry_point
@@ -90,6 +98,7 @@ def _run_batch(
     gyro: np.ndarray,
     accel: np.ndarray,
     mag: np.ndarray,
+    linear_accel: np.ndarray,
     out_q: np.ndarray,
     out_bias: np.ndarray,
     out_cov: np.ndarray,
@@ -106,7 +115,7 @@ def _run_batch(
     s = state[0]
     c = coefficients[0]
     for i in range(t.shape[0]):
-        step(s, c, t[i], gyro[i], accel[i], mag[i])
+        step(s, c, t[i], gyro[i], accel[i], mag[i], linear_accel[i])
         out_q[i] = s.q
         out_bias[i] = s.b
         out_cov[i] = s.P[:N_ERROR, :N_ERROR]
@@ -197,7 +206,7 @@ class EstimateSeries:
         return so3.euler_zyx_from_quats(self.q)
 
 
-_NO_MAG = (math.nan, math.nan, math.nan)
+_UNKNOWN3 = (math.nan, math.nan, math.nan)  # no magnetometer, no known acceleration
 
 
 def _vector3(value: ArrayLike, name: str) -> np.ndarray:
@@ -343,14 +352,24 @@ class Estimator:
         return bool(self._state["mag_state"][0])
 
     def update(
-        self, t: float, gyro: ArrayLike, accel: ArrayLike, mag: ArrayLike | None = None
+        self,
+        t: float,
+        gyro: ArrayLike,
+        accel: ArrayLike,
+        mag: ArrayLike | None = None,
+        linear_accel: ArrayLike | None = None,
     ) -> Estimate:
         """Take one sample; return the estimate after it.
 
         ``mag`` (µT, FRD) when this sample carries a magnetometer reading; None
         (or NaN) when it does not: heading then runs on the gyro alone.
+        ``linear_accel`` (m/s², NED) the vehicle's acceleration relative to the
+        Earth when it is known (from GPS velocity): it is removed from the
+        specific force, and in turns the gravity update then also sees heading.
+        None (or NaN): unknown, averaged away by the low-pass.
         """
-        m = _NO_MAG if mag is None else _components3(mag, "mag")
+        m = _UNKNOWN3 if mag is None else _components3(mag, "mag")
+        a = _UNKNOWN3 if linear_accel is None else _components3(linear_accel, "linear_accel")
         (
             t_step,
             nis,
@@ -368,6 +387,7 @@ class Estimator:
             *_components3(gyro, "gyro"),
             *_components3(accel, "accel"),
             *m,
+            *a,
         )
         return Estimate(
             t_step,
@@ -391,11 +411,13 @@ class Estimator:
         gyro: ArrayLike,
         accel: ArrayLike,
         mag: ArrayLike | None = None,
+        linear_accel: ArrayLike | None = None,
     ) -> EstimateSeries:
         """Take N samples in one compiled loop; return the estimate after each.
 
         ``mag`` (N, 3) µT, NaN rows where a sample has no magnetometer reading;
-        None: 6-D throughout.
+        None: 6-D throughout. ``linear_accel`` (N, 3) m/s² NED, NaN rows where
+        the vehicle's acceleration is not known (see :meth:`update`).
         """
         t = np.ascontiguousarray(t, dtype=np.float64)
         if t.ndim != 1:
@@ -404,6 +426,11 @@ class Estimator:
         gyro = _series3(gyro, n, "gyro")
         accel = _series3(accel, n, "accel")
         mag = np.full((n, 3), np.nan) if mag is None else _series3(mag, n, "mag")
+        linear_accel = (
+            np.full((n, 3), np.nan)
+            if linear_accel is None
+            else _series3(linear_accel, n, "linear_accel")
+        )
         out = EstimateSeries(
             t.copy(),
             np.empty((n, 4)),
@@ -426,6 +453,7 @@ class Estimator:
             gyro,
             accel,
             mag,
+            linear_accel,
             out.q,
             out.bias,
             out.cov,
@@ -448,6 +476,7 @@ def estimate(
     accel: ArrayLike,
     mag: ArrayLike | None = None,
     config: EstimatorConfig | None = None,
+    linear_accel: ArrayLike | None = None,
 ) -> EstimateSeries:
     """Estimate attitude and gyro bias for a whole recording (see :class:`Estimator`)."""
-    return Estimator(config).update_batch(t, gyro, accel, mag)
+    return Estimator(config).update_batch(t, gyro, accel, mag, linear_accel)

@@ -58,6 +58,7 @@ class StepFlags:
     HEADING_ALIGNED = 16384  # heading set from the magnetometer (first sample, or again)
     MAG_REFERENCE_CHANGED = 32768  # a steady new field became the reference
     HEADING_REOPENED = 65536  # magnetometer rejected too long: heading uncertain again
+    ACCEL_AIDED = 131072  # the vehicle's known acceleration (GPS) was removed from the sample
 
     SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING
 
@@ -102,6 +103,8 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("lowpass_restart_angle", np.float64),
         ("velocity_var", np.float64),
         ("velocity_time", np.float64),
+        ("aided_velocity_var", np.float64),
+        ("aided_max_heading_var", np.float64),
         ("rest_detection", np.int64),
         ("rest_filter_time", np.float64),
         ("rest_gyro_threshold", np.float64),
@@ -157,6 +160,7 @@ STATE_DTYPE = np.dtype(
         ("mag_lp_norm", np.float64),  # norm and dip low-passed for the disturbance check
         ("mag_lp_dip", np.float64),
         ("mag_clear_time", np.float64),  # how long the field has been undisturbed, s
+        ("linear_accel", np.float64, 3),  # this sample's known acceleration, NED; NaN: unknown
         ("t_mag", np.float64),  # time of the last valid magnetometer sample
         ("t_mag_used", np.float64),  # time of the last heading update (or alignment)
         ("mag_disturbances", np.int64),  # samples not used: norm/dip off or gated
@@ -177,7 +181,8 @@ STATE_DTYPE = np.dtype(
         ("w_n33", np.float64, (3, 3)),
         ("w_v3", np.float64, 3),
         ("w_u3", np.float64, 3),
-        ("w_sample", np.float64, 9),  # the online step's gyro, accel and magnetometer
+        ("w_sample", np.float64, 12),  # the online step's gyro, accel, magnetometer, linear accel
+        ("w_aid", np.float64, (3, 3)),  # [a]× W: how the attitude error moves an aided sample
         ("w_mag", np.float64, 3),
         ("w_Hm", np.float64, N_STATE_MAX),
         ("w_Km", np.float64, (N_STATE_MAX, 1)),
@@ -251,6 +256,8 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["lowpass_restart_angle"] = config.accel_lowpass_restart_angle
     c["velocity_var"] = config.velocity_sigma**2
     c["velocity_time"] = config.velocity_time
+    c["aided_velocity_var"] = config.aided_velocity_sigma**2
+    c["aided_max_heading_var"] = config.aided_max_heading_sigma**2
     c["rest_detection"] = int(config.rest_detection)
     c["rest_filter_time"] = config.rest_filter_time
     c["rest_gyro_threshold"] = config.rest_gyro_threshold

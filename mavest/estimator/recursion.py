@@ -118,6 +118,7 @@ _MAG_REJECTED = StepFlags.MAG_REJECTED
 _HEADING_ALIGNED = StepFlags.HEADING_ALIGNED
 _MAG_REFERENCE_CHANGED = StepFlags.MAG_REFERENCE_CHANGED
 _HEADING_REOPENED = StepFlags.HEADING_REOPENED
+_ACCEL_AIDED = StepFlags.ACCEL_AIDED
 
 
 # --------------------------------------------------------------------------
@@ -870,6 +871,10 @@ def _absorb_sample(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt:
     var η = σ_a²/Δt, var ξ = σ_v² (1 − γ²).
     """
     so3.quat_rotate_into(s.q, accel, s.w_v3)  # R̄ a
+    aided = _vector_is_finite(s.linear_accel)
+    if aided:
+        for i in range(3):
+            s.w_v3[i] -= s.linear_accel[i]
     lp = s.accel_world_lp
     if s.lowpass_time < c.accel_lowpass_time:
         beta = s.lowpass_time / (s.lowpass_time + dt)
@@ -885,7 +890,7 @@ def _absorb_sample(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt:
     cv = (gamma - 1.0) / dt
     a02, a12 = g0 * cv, g1 * cv
     var_eta = c.accel_var_density / dt
-    var_xi = c.velocity_var * (1.0 - gamma * gamma)
+    var_xi = (c.aided_velocity_var if aided else c.velocity_var) * (1.0 - gamma * gamma)
     b0, b1 = g0 / dt, g1 / dt
     n = c.n_state
     P = s.P
@@ -913,6 +918,54 @@ def _absorb_sample(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt:
         P[d, v] += b1 * var_xi
         P[v, d] += b1 * var_xi
         P[v, v] += var_xi
+    if aided:
+        _couple_aided_sample(s, c, g0, g1)
+
+
+@kernel
+def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: float) -> None:
+    """The attitude error's part in an aided sample: [ε; ḟ] += [Γ₀; Γ₁] M δθ.
+
+    With the known acceleration a removed, R̄f − a = Exp(−δθ_w)(a − g e₃) − a
+    ≈ −g e₃ + [a]× δθ_w: a heading error now shows as a horizontal error of
+    the sample (in a turn, the centripetal acceleration seen in the wrong
+    direction). With δθ_w = W δθ, M = [a]× W. Exact as a linear map of the
+    error, so P ← T P Tᵀ with T = I + (those rows): rows first (δθ's rows do
+    not change), then columns. This correlation is what lets the gravity
+    update see heading in turns, as a GPS-aided INS does.
+    """
+    M = s.w_aid
+    so3.hat_into(s.linear_accel, M)
+    if c.error != ERROR_LEFT:
+        R = s.w_R_tilt
+        so3.matrix_from_quat_into(s.q, R)
+        for i in range(3):
+            r0, r1, r2 = M[i, 0], M[i, 1], M[i, 2]
+            for j in range(3):
+                s.w_m33[i, j] = r0 * R[0, j] + r1 * R[1, j] + r2 * R[2, j]
+        M[:, :] = s.w_m33
+    n = c.n_state
+    P = s.P
+    for j in range(n):  # rows: T P
+        m0 = M[0, 0] * P[0, j] + M[0, 1] * P[1, j] + M[0, 2] * P[2, j]
+        m1 = M[1, 0] * P[0, j] + M[1, 1] * P[1, j] + M[1, 2] * P[2, j]
+        m2 = M[2, 0] * P[0, j] + M[2, 1] * P[1, j] + M[2, 2] * P[2, j]
+        P[_EPS, j] += g0 * m0
+        P[_EPS + 1, j] += g0 * m1
+        P[_EPS + 2, j] += g0 * m2
+        P[_RATE, j] += g1 * m0
+        P[_RATE + 1, j] += g1 * m1
+        P[_RATE + 2, j] += g1 * m2
+    for i in range(n):  # columns: (T P) Tᵀ
+        m0 = M[0, 0] * P[i, 0] + M[0, 1] * P[i, 1] + M[0, 2] * P[i, 2]
+        m1 = M[1, 0] * P[i, 0] + M[1, 1] * P[i, 1] + M[1, 2] * P[i, 2]
+        m2 = M[2, 0] * P[i, 0] + M[2, 1] * P[i, 1] + M[2, 2] * P[i, 2]
+        P[i, _EPS] += g0 * m0
+        P[i, _EPS + 1] += g0 * m1
+        P[i, _EPS + 2] += g0 * m2
+        P[i, _RATE] += g1 * m0
+        P[i, _RATE + 1] += g1 * m1
+        P[i, _RATE + 2] += g1 * m2
 
 
 # The low-passed direction is used once f̄'s error σ_ε is below this fraction of g.
@@ -937,6 +990,13 @@ def accel_update(
         so3.quat_rotate_into(s.w_q4, s.accel_world_lp[0], s.w_u3)  # R̄ᵀ f̄
     else:
         s.w_u3[:] = accel
+        if _vector_is_finite(s.linear_accel):  # f − R̄ᵀa (its heading coupling is not modelled)
+            so3.quat_conjugate_into(s.q, s.w_q4)
+            so3.quat_rotate_into(s.w_q4, s.linear_accel, s.w_v3)
+            for i in range(3):
+                s.w_u3[i] -= s.w_v3[i]
+    if _vector_is_finite(s.linear_accel):
+        s.flags |= _ACCEL_AIDED
     f = s.w_u3
     norm = math.sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2)
     if not norm > _MIN_ACCEL_FRACTION * c.gravity:
@@ -1038,6 +1098,17 @@ def _heading_step(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
         s.w_dx[i] = 0.0
     for i in range(3):
         s.w_dx[i] = s.w_m33[i, 2] * psi
+
+
+@kernel
+def _heading_variance(s: StateRecord, c: CoefficientsRecord) -> float:
+    """The variance of the attitude error about the world vertical (rad²)."""
+    _heading_step(s, c, 1.0)  # w_dx[:3] = the error-frame image of the vertical
+    var = 0.0
+    for i in range(3):
+        for j in range(3):
+            var += s.w_dx[i] * s.P[i, j] * s.w_dx[j]
+    return var
 
 
 @kernel
@@ -1171,12 +1242,7 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
         # rejected this long: more likely heading is off than the field; heading
         # gets its initial uncertainty (if it claims less) and the field is used
         s.flags |= _HEADING_REOPENED
-        _heading_step(s, c, 1.0)  # w_dx[:3] = the error-frame image of the vertical
-        heading_var = 0.0
-        for i in range(3):
-            for j in range(3):
-                heading_var += s.w_dx[i] * s.P[i, j] * s.w_dx[j]
-        if heading_var < c.mag_reopened_heading_var:
+        if _heading_variance(s, c) < c.mag_reopened_heading_var:
             _set_attitude_covariance_world(s, c, 0.0, c.mag_reopened_heading_var, False, True)
         s.mag_candidate_time = 0.0
         s.mag_clear_time = c.mag_recovery_time
@@ -1329,13 +1395,17 @@ def step(
     gyro: np.ndarray,
     accel: np.ndarray,
     mag: np.ndarray,
+    linear_accel: np.ndarray,
 ) -> None:
     """Process one IMU sample taken at time t (s): gyro (rad/s), accel (m/s²), mag (µT), FRD.
 
+    ``linear_accel`` is the vehicle's acceleration relative to the Earth (m/s²,
+    NED) when it is known at this sample (from GPS velocity), NaN when not.
     The gyro sample is held over (t_prev, t]; a NaN magnetometer means none in
     this sample. Samples that cannot be used are skipped and say why in
     ``s.flags``; the estimate stays finite throughout.
     """
+    s.linear_accel[:] = linear_accel
     _step_sample(s, c, t, gyro, accel, mag)
     # the structured products round the two triangles differently
     symmetrise(s.P[: c.n_state, : c.n_state])
@@ -1398,6 +1468,11 @@ def _step_sample(
         return
     predict(s, c, gyro, dt)
     s.t = t
+    if _vector_is_finite(s.linear_accel) and _heading_variance(s, c) > c.aided_max_heading_var:
+        # The known acceleration is known in the world frame: with heading this
+        # uncertain, turning it into the body would be a guess, and the linear
+        # model of that guess's error meaningless. Unaided until heading is known.
+        s.linear_accel[0] = math.nan
     if not s.filters_primed and _vector_is_finite(accel):
         _prime_filters(s, c, gyro, accel, dt)
         s.filters_primed = 2  # tells accel_update the low-pass already holds this sample

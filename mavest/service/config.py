@@ -26,6 +26,7 @@ from mavest.mavlink.signing import (
 
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
 GROUND_STATION_SYSTEM = 255
+ACCELERATION_AIDING = ("auto", "gps", "airspeed", "off")
 
 
 @dataclass(frozen=True)
@@ -43,10 +44,12 @@ class InputConfig:
     # Ask the flight controller for the IMU message at this rate (Hz) on a live link
     # (MAV_CMD_SET_MESSAGE_INTERVAL); 0: leave its rate alone.
     request_rate: float = 0.0
-    # Remove the centripetal acceleration of flight along the body x axis from the
-    # accelerometer, using VFR_HUD's airspeed: "auto" for fixed wings (HEARTBEAT
-    # type), "airspeed" for any vehicle sending VFR_HUD, "off".
-    centripetal_correction: str = "auto"
+    # Remove the vehicle's own acceleration from the accelerometer (mavest.service.aiding):
+    # "gps": from GLOBAL_POSITION_INT velocity while GPS_RAW_INT has a 3-D fix and the
+    # magnetometer gives heading; "airspeed": the centripetal term ω × V from VFR_HUD
+    # (any vehicle); "auto": GPS when it can, else airspeed on fixed wings (HEARTBEAT
+    # type); "off".
+    acceleration_aiding: str = "auto"
     # Seconds after a stream's first sample before replay accuracy is scored (convergence).
     settle_time: float = 10.0
 
@@ -62,8 +65,8 @@ class InputConfig:
         )
         _require(self.settle_time >= 0.0, "input.settle_time must be ≥ 0")
         _require(
-            self.centripetal_correction in ("auto", "airspeed", "off"),
-            "input.centripetal_correction must be auto, airspeed or off",
+            self.acceleration_aiding in ACCELERATION_AIDING,
+            f"input.acceleration_aiding must be one of {', '.join(ACCELERATION_AIDING)}",
         )
 
 

@@ -38,6 +38,7 @@ from mavest.mavlink.messages import (
 )
 from mavest.mavlink.signing import Signing, Verifier
 from mavest.mavlink.tlog import TlogWriter
+from mavest.service.aiding import AIRSPEED_MAX_AGE, GpsAcceleration, without_centripetal
 from mavest.service.config import ServiceConfig
 
 log = logging.getLogger("mavest")
@@ -91,6 +92,8 @@ class StreamStats:
     wraps: int = 0
     mag_samples: int = 0  # samples that carried a usable magnetometer reading
     mag_used: int = 0  # of those, the ones that corrected (or set) heading
+    gps_aided: int = 0  # samples with the vehicle's acceleration from GPS removed
+    airspeed_aided: int = 0  # samples with the centripetal term from airspeed removed
     answered: int = 0  # ATTITUDE messages sent for this stream
     first_t: float | None = None
     last_t: float | None = None
@@ -134,6 +137,7 @@ class Vehicle:
     fixed_wing: bool = False  # from HEARTBEAT.type
     airspeed: float = math.nan  # m/s, from VFR_HUD
     airspeed_t: float = -math.inf  # vehicle time it arrived at
+    gps: GpsAcceleration = field(default_factory=GpsAcceleration)
     declination: float | None = None  # rad, the vehicle's COMPASS_DEC (PARAM_VALUE)
 
 
@@ -233,6 +237,13 @@ class Pipeline:
             if vehicle is not None and vehicle.last_t is not None and 0.0 <= airspeed < 400.0:
                 vehicle.airspeed = airspeed  # (NaN fails the range test)
                 vehicle.airspeed_t = vehicle.last_t
+        elif name == "GLOBAL_POSITION_INT" or name == "GPS_RAW_INT":
+            vehicle = self.vehicles.get((system, component))
+            if vehicle is not None and vehicle.last_t is not None:
+                if name == "GPS_RAW_INT":
+                    vehicle.gps.on_fix(message.fix_type, vehicle.last_t)
+                else:
+                    vehicle.gps.on_velocity(message, vehicle.last_t)
         elif name == "HEARTBEAT":
             if system in self.config.input.ignore_systems:
                 return
@@ -365,14 +376,20 @@ class Pipeline:
         elif event is ClockEvent.GAP:
             stats.gaps += 1
         vehicle = self.vehicles[(sample.stream.system, sample.stream.component)]
-        if self._corrects_centripetal(vehicle, t):
-            accel = _without_centripetal(accel, gyro, stream.estimator.bias, vehicle.airspeed)
         mag = _usable_mag(sample.mag)
-        estimate = stream.estimator.update(t, gyro, accel, mag)
+        linear_accel = self._gps_acceleration(stream, vehicle, t)
+        airspeed_aided = linear_accel is None and self._uses_airspeed(vehicle, t)
+        if airspeed_aided:
+            accel = without_centripetal(accel, gyro, stream.estimator.bias, vehicle.airspeed)
+        estimate = stream.estimator.update(t, gyro, accel, mag, linear_accel)
         flags = estimate.flags
         if flags & StepFlags.SKIPPED:
             stats.rejected += 1
             return
+        if flags & StepFlags.ACCEL_AIDED:
+            stats.gps_aided += 1
+        elif airspeed_aided:
+            stats.airspeed_aided += 1
         if flags & StepFlags.GAP_REALIGNED:
             stats.realigned += 1
             log.warning("%s: no samples for %.2f s: attitude re-aligned", stream.key, reading.dt)
@@ -417,9 +434,23 @@ class Pipeline:
             if (key.system, key.component) == (system, component):
                 stream.estimator.declination = declination
 
-    def _corrects_centripetal(self, vehicle: Vehicle, t: float) -> bool:
-        mode = self.config.input.centripetal_correction
-        if mode == "off" or (mode == "auto" and not vehicle.fixed_wing):
+    def _gps_acceleration(
+        self, stream: Stream, vehicle: Vehicle, t: float
+    ) -> tuple[float, float, float] | None:
+        """The vehicle's acceleration (NED) from GPS for a sample at t, if usable.
+
+        Only with heading from the magnetometer: the acceleration is known in the
+        world frame, and a free (6-D) heading cannot turn it into the body.
+        """
+        if self.config.input.acceleration_aiding not in ("auto", "gps"):
+            return None
+        if not stream.estimator.heading_referenced:
+            return None
+        return vehicle.gps.at(t)
+
+    def _uses_airspeed(self, vehicle: Vehicle, t: float) -> bool:
+        mode = self.config.input.acceleration_aiding
+        if mode in ("off", "gps") or (mode == "auto" and not vehicle.fixed_wing):
             return False
         return 0.0 <= t - vehicle.airspeed_t <= AIRSPEED_MAX_AGE
 
@@ -524,7 +555,6 @@ class Pipeline:
 
 _IMU_NAMES = frozenset(IMU_MESSAGES)
 
-AIRSPEED_MAX_AGE = 2.0  # s: an older VFR_HUD airspeed is not used
 _FIXED_WING_TYPES = frozenset(
     getattr(mavlink2, name)
     for name in (
@@ -539,26 +569,6 @@ _FIXED_WING_TYPES = frozenset(
     )
     if hasattr(mavlink2, name)
 )
-
-
-def _without_centripetal(
-    accel: tuple[float, float, float],
-    gyro: tuple[float, float, float],
-    bias: Any,
-    airspeed: float,
-) -> tuple[float, float, float]:
-    """The specific force less the centripetal acceleration of flight along body x.
-
-    A fixed wing in a steady coordinated turn feels its load factor straight
-    down the body z axis: the accelerometer alone says "level" at any bank
-    (22° RMS tilt error on the JSBSim flight, for VQF as for mavest). With
-    v ≈ (V, 0, 0) in the body frame, a = v̇ + ω × v and ω × v = (0, ω_z V, −ω_y V);
-    removing it leaves gravity and v̇ (ArduPilot's DCM does the same with its
-    airspeed). v̇ (speed changes, sideslip, gusts) stays: see the README's limits.
-    """
-    wy = gyro[1] - bias[1]
-    wz = gyro[2] - bias[2]
-    return (accel[0], accel[1] - wz * airspeed, accel[2] + wy * airspeed)
 
 
 _HEADING_EVENTS = (

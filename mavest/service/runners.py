@@ -41,7 +41,16 @@ log = logging.getLogger("mavest")
 
 # What replay decodes; every other record is copied to the output tlog undecoded.
 REPLAY_MESSAGES = message_ids(
-    [*IMU_MESSAGES, "ATTITUDE", "SIMSTATE", "HEARTBEAT", "VFR_HUD", "PARAM_VALUE"]
+    [
+        *IMU_MESSAGES,
+        "ATTITUDE",
+        "SIMSTATE",
+        "HEARTBEAT",
+        "VFR_HUD",
+        "PARAM_VALUE",
+        "GPS_RAW_INT",
+        "GLOBAL_POSITION_INT",
+    ]
 )
 
 
@@ -396,6 +405,17 @@ def format_summary(report: RunReport) -> str:
             )
         else:
             lines.append("    no magnetometer: heading free (6-D), yaw drifts")
+        aided = [
+            f"{100.0 * count / stats.estimated:.1f} % from {source}"
+            for source, count in (
+                ("GPS velocity", stats.gps_aided),
+                ("airspeed (centripetal only)", stats.airspeed_aided),
+            )
+            if count and stats.estimated
+        ]
+        lines.append(
+            "    vehicle acceleration removed: " + (", ".join(aided) if aided else "never")
+        )
         settle = pipeline.config.input.settle_time
         for name, comparison in (
             ("truth (SIMSTATE)", stream.vs_truth),

@@ -44,6 +44,12 @@ BOOT_OFFSET = 20.0  # s the flight controller had been up when the flight starts
 TLOG_EPOCH_US = 1_767_225_600_000_000  # 2026-01-01 00:00 UTC: files are reproducible
 STREAM_MODEL_RATE = 1000.0  # Hz: the streaming vehicle's flight model
 HUD_PERIOD = 0.1  # s between VFR_HUD messages (airspeed)
+GPS_PERIOD = 0.1  # s between GPS_RAW_INT and GLOBAL_POSITION_INT (10 Hz, a u-blox's rate)
+GPS_VELOCITY_SIGMA = 0.05  # m/s per NED axis: a GNSS receiver's Doppler velocity noise
+# The simulated field's azimuth (EARTH_FIELD_NED), which the vehicle reports as its
+# COMPASS_DEC parameter the way an autopilot that looked it up from its position does.
+DECLINATION = math.atan2(EARTH_FIELD_NED[1], EARTH_FIELD_NED[0])
+GPS_NOISE_STREAM = 7  # the GPS noise's generator: SeedSequence([seed, this])
 
 
 @dataclass(frozen=True)
@@ -120,6 +126,28 @@ class VehicleEncoder:
             float(-velocity[2]),
         ).pack(self._mav)
 
+    def gps(self, t_boot: float, flight: Flight, i: int, velocity: np.ndarray) -> list[bytes]:
+        """GPS_RAW_INT (3-D fix) and GLOBAL_POSITION_INT with ``velocity`` (m/s NED)."""
+        lat = round(float(flight.latitude[i]) * 1e7)
+        lon = round(float(flight.longitude[i]) * 1e7)
+        alt = round(float(flight.altitude[i]) * 1000.0)
+        cm = [int(v) for v in np.clip(np.rint(velocity * 100.0), -32768, 32767)]
+        ground_speed = math.hypot(cm[0], cm[1])
+        course = round(math.degrees(math.atan2(cm[1], cm[0])) * 100.0) % 36000
+        raw = self._mav.gps_raw_int_encode(
+            round(t_boot * 1e6), 3, lat, lon, alt, 90, 150, round(ground_speed), course, 14
+        )
+        position = self._mav.global_position_int_encode(
+            round(t_boot * 1e3), lat, lon, alt, alt, *cm, course
+        )
+        return [raw.pack(self._mav), position.pack(self._mav)]
+
+    def declination(self) -> bytes:
+        """PARAM_VALUE COMPASS_DEC, as an autopilot reports its parameters."""
+        return self._mav.param_value_encode(
+            b"COMPASS_DEC", DECLINATION, mavlink2.MAV_PARAM_TYPE_REAL32, 1, 0
+        ).pack(self._mav)
+
     def heartbeat(self) -> bytes:
         return self._mav.heartbeat_encode(
             mavlink2.MAV_TYPE_FIXED_WING,
@@ -167,8 +195,11 @@ def write_flight_tlog(
     chunk = max(1, round(10.0 * rate))
     next_heartbeat = 0.0
     next_hud = 0.0
+    next_gps = 0.0
+    gps_noise = np.random.default_rng([seed, GPS_NOISE_STREAM])
     samples = 0
     with TlogWriter(path) as tlog:
+        tlog.write(TLOG_EPOCH_US, encoder.declination())
         while samples < total:
             flight = model.advance(min(chunk, total - samples))
             gyro, accel = imu.measure(flight.gyro, flight.accel)
@@ -194,10 +225,16 @@ def write_flight_tlog(
                 if t >= next_hud:
                     tlog.write(stamp, encoder.vfr_hud(flight, i, euler[i, 2]))
                     next_hud += HUD_PERIOD
+                if t >= next_gps:
+                    velocity = flight.velocity[i] + gps_noise.normal(0.0, GPS_VELOCITY_SIGMA, 3)
+                    for packet in encoder.gps(t + BOOT_OFFSET, flight, i, velocity):
+                        tlog.write(stamp, packet)
+                    next_gps += GPS_PERIOD
             samples += len(flight)
     return (
         f"wrote {path}: {samples} {autopilot.imu_message} at {rate:g} Hz over {seconds:g} s, "
-        f"with SIMSTATE (truth) per sample and VFR_HUD at {1 / HUD_PERIOD:g} Hz; gyro bias "
+        f"with SIMSTATE (truth) per sample, VFR_HUD at {1 / HUD_PERIOD:g} Hz and GPS at "
+        f"{1 / GPS_PERIOD:g} Hz; gyro bias "
         f"{', '.join(f'{math.degrees(b):+.2f}' for b in imu.gyro_bias)} °/s"
     )
 
@@ -286,6 +323,8 @@ class StreamingVehicle:
         self._accumulated = 0
         self._next_emit = 0.0
         self._next_hud = 0.0
+        self._next_gps = 0.0
+        self._gps_noise = np.random.default_rng([seed, GPS_NOISE_STREAM])
         # load the compiled rotation kernels now, not while the first samples are due
         identity = np.array([1.0, 0.0, 0.0, 0.0])
         _magnetometer(identity[None])
@@ -391,10 +430,18 @@ class StreamingVehicle:
         if t >= self._next_hud:
             self.link.send(self.encoder.vfr_hud(flight, i, euler[2]))
             self._next_hud = t + HUD_PERIOD
+        if t >= self._next_gps:
+            velocity = flight.velocity[i] + self._gps_noise.normal(0.0, GPS_VELOCITY_SIGMA, 3)
+            for gps_packet in self.encoder.gps(t_boot, flight, i, velocity):
+                self.link.send(gps_packet)
+            self._next_gps = t + GPS_PERIOD
         self.report.sent += 1
 
     def heartbeat(self) -> None:
+        # COMPASS_DEC with each heartbeat: an autopilot sends it when asked (or when
+        # a ground station fetches its parameters), which a late listener may miss
         self.link.send(self.encoder.heartbeat())
+        self.link.send(self.encoder.declination())
 
     def finish(self, seconds: float) -> VehicleReport:
         report = self.report

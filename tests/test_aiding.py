@@ -1,0 +1,180 @@
+"""The vehicle's acceleration from GPS velocity: removed in the world frame, with the
+heading error's part in it modelled, so that turns reveal heading (as in a GPS-aided
+INS); and the service's differencing of GLOBAL_POSITION_INT."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mavest import Estimator
+from mavest.estimator.config import EstimatorConfig
+from mavest.estimator.layout import StepFlags
+from mavest.service.aiding import GpsAcceleration
+
+G = 9.80665
+RATE = 200.0
+
+
+def _coordinated_turn(seconds: float, seed: int = 0) -> dict[str, np.ndarray]:
+    """5 s straight, a 3 s roll into a 28° bank, then a steady coordinated turn at 50 m/s.
+
+    Built with scipy's Rotation: q body → NED (w, x, y, z), gyro and specific force
+    with a little white noise, the true acceleration in NED. Coordinated: the yaw
+    rate is g·tan(φ)/V, and the body rates are (φ̇, ψ̇ sin φ, ψ̇ cos φ) at zero pitch.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(round(seconds * RATE) + 1) / RATE
+    speed, bank_max, start, roll_in = 50.0, math.radians(28.0), 5.0, 3.0
+    ramp = np.clip((t - start) / roll_in, 0.0, 1.0)
+    bank = bank_max * 0.5 * (1.0 - np.cos(math.pi * ramp))
+    bank_rate = np.where(
+        (t > start) & (t < start + roll_in),
+        bank_max * 0.5 * math.pi / roll_in * np.sin(math.pi * ramp),
+        0.0,
+    )
+    yaw_rate = G * np.tan(bank) / speed
+    yaw = np.concatenate([[0.0], np.cumsum(0.5 * (yaw_rate[1:] + yaw_rate[:-1])) / RATE])
+    attitude = Rotation.from_euler("ZYX", np.column_stack([yaw, 0 * yaw, bank]))
+    accel_ned = speed * yaw_rate[:, None] * np.column_stack([-np.sin(yaw), np.cos(yaw), 0 * yaw])
+    specific = attitude.inv().apply(accel_ned - np.array([0.0, 0.0, G]))
+    gyro = np.column_stack([bank_rate, yaw_rate * np.sin(bank), yaw_rate * np.cos(bank)])
+    q = attitude.as_quat()[:, [3, 0, 1, 2]]
+    return {
+        "t": t,
+        "q": q,
+        "gyro": gyro + 1e-3 * math.sqrt(RATE) * rng.standard_normal(gyro.shape),
+        "accel": specific + 0.01 * math.sqrt(RATE) * rng.standard_normal(specific.shape),
+        "accel_ned": accel_ned,
+    }
+
+
+def _heading_error(q_est: np.ndarray, q_true: np.ndarray) -> float:
+    """The estimate's error about the world vertical, rad."""
+    est = Rotation.from_quat(q_est[[1, 2, 3, 0]])
+    true = Rotation.from_quat(q_true[[1, 2, 3, 0]])
+    return float((est * true.inv()).as_rotvec()[2])
+
+
+def _run(flight: dict[str, np.ndarray], aided: bool, heading_offset: float) -> tuple:
+    estimator = Estimator(EstimatorConfig())
+    start = Rotation.from_rotvec([0.0, 0.0, heading_offset]) * Rotation.from_quat(
+        flight["q"][0, [1, 2, 3, 0]]
+    )
+    cov = np.diag([math.radians(1.0) ** 2] * 2 + [math.radians(8.0) ** 2] + [1e-8] * 3)
+    estimator.initialise(0.0, start.as_quat()[[3, 0, 1, 2]], cov=cov)
+    flags = 0
+    for i in range(1, len(flight["t"])):
+        linear = flight["accel_ned"][i] if aided else None
+        estimate = estimator.update(
+            flight["t"][i], flight["gyro"][i], flight["accel"][i], None, linear
+        )
+        flags |= estimate.flags
+    error = _heading_error(estimator.q, flight["q"][-1])
+    return error, math.sqrt(estimator.cov[2, 2]), flags
+
+
+def test_turns_reveal_heading_when_the_acceleration_is_known() -> None:
+    # No magnetometer: only the modelled coupling of heading into the aided sample
+    # (the turn's acceleration seen in the wrong direction) can correct heading.
+    flight = _coordinated_turn(60.0)
+    offset = math.radians(6.0)
+    error, sigma, flags = _run(flight, True, offset)
+    assert flags & StepFlags.ACCEL_AIDED
+    assert abs(error) < 0.2 * offset  # most of the 6° found
+    assert sigma < 0.6 * math.radians(8.0)  # and the filter knows it learnt (σ was 8°)
+    assert abs(error) < 3.0 * sigma  # honestly
+    # unaided, the accelerometer says nothing about heading: the offset stays
+    error_unaided, _, _ = _run(flight, False, offset)
+    assert abs(error_unaided) > 0.6 * offset
+
+
+def test_aided_tilt_holds_in_a_turn() -> None:
+    flight = _coordinated_turn(60.0, seed=1)
+    for aided, bound in ((True, 0.5), (False, 10.0)):
+        estimator = Estimator(EstimatorConfig())
+        cov = np.diag([math.radians(1.0) ** 2] * 2 + [math.radians(2.0) ** 2] + [1e-8] * 3)
+        estimator.initialise(0.0, flight["q"][0], cov=cov)
+        worst = 0.0
+        for i in range(1, len(flight["t"])):
+            linear = flight["accel_ned"][i] if aided else None
+            estimate = estimator.update(
+                flight["t"][i], flight["gyro"][i], flight["accel"][i], None, linear
+            )
+            if flight["t"][i] > 20.0:
+                est = Rotation.from_quat(estimate.q[[1, 2, 3, 0]])
+                true = Rotation.from_quat(flight["q"][i, [1, 2, 3, 0]])
+                tilt = np.linalg.norm((est * true.inv()).as_rotvec()[:2])
+                worst = max(worst, math.degrees(tilt))
+        if aided:
+            assert worst < bound
+        else:  # the bank the accelerometer cannot see without it
+            assert worst > bound
+
+
+def test_unknown_heading_leaves_the_sample_unaided() -> None:
+    # heading σ beyond aided_max_heading_sigma: the world-frame acceleration is not used
+    flight = _coordinated_turn(6.0)
+    estimator = Estimator(EstimatorConfig())
+    cov = np.diag([1e-4, 1e-4, math.radians(30.0) ** 2, 1e-8, 1e-8, 1e-8])
+    estimator.initialise(0.0, flight["q"][0], cov=cov)
+    estimate = estimator.update(
+        flight["t"][1], flight["gyro"][1], flight["accel"][1], None, [1.0, 0.0, 0.0]
+    )
+    assert not estimate.flags & StepFlags.ACCEL_AIDED
+
+
+def test_online_and_batch_agree_with_aiding() -> None:
+    import mavest
+
+    flight = _coordinated_turn(20.0, seed=2)
+    linear = flight["accel_ned"].copy()
+    linear[::7] = np.nan  # some samples without
+    batch = mavest.estimate(flight["t"], flight["gyro"], flight["accel"], linear_accel=linear)
+    estimator = Estimator()
+    for i in range(len(flight["t"])):
+        online = estimator.update(
+            flight["t"][i], flight["gyro"][i], flight["accel"][i], None, linear[i]
+        )
+    assert np.array_equal(online.q, batch.q[-1])
+    assert np.array_equal(online.cov, batch.cov[-1])
+
+
+def _position(t: float, v: tuple[float, float, float]) -> SimpleNamespace:
+    return SimpleNamespace(
+        time_boot_ms=round(t * 1000),
+        vx=round(v[0] * 100),
+        vy=round(v[1] * 100),
+        vz=round(v[2] * 100),
+    )
+
+
+def test_gps_acceleration_differences_velocity_reports() -> None:
+    gps = GpsAcceleration()
+    gps.on_fix(3, 0.0)
+    gps.on_velocity(_position(0.0, (10.0, 0.0, 0.0)), 0.0)
+    assert gps.at(0.05) is None  # one report: no difference yet
+    gps.on_velocity(_position(0.1, (10.5, -0.2, 0.1)), 0.1)
+    assert gps.at(0.15) == pytest.approx((5.0, -2.0, 1.0))
+    assert gps.at(0.1 + 0.6) is None  # stale
+    assert gps.at(2.5) is None  # and the fix too
+
+
+def test_gps_acceleration_needs_a_fix_and_sane_reports() -> None:
+    gps = GpsAcceleration()
+    gps.on_fix(1, 0.0)  # no fix
+    gps.on_velocity(_position(0.0, (10.0, 0.0, 0.0)), 0.0)
+    gps.on_velocity(_position(0.1, (10.5, 0.0, 0.0)), 0.1)
+    assert gps.at(0.1) is None
+    gps.on_fix(3, 0.1)
+    assert gps.at(0.1) == pytest.approx((5.0, 0.0, 0.0))
+    gps.on_velocity(_position(0.2, (60.0, 0.0, 0.0)), 0.2)  # 495 m/s²: a glitch
+    assert gps.glitches == 1
+    assert gps.at(0.2) == pytest.approx((5.0, 0.0, 0.0))  # the last good one
+    gps.on_velocity(_position(2.0, (60.0, 0.0, 0.0)), 2.0)  # 1.8 s apart: not differenced
+    gps.on_fix(3, 2.0)
+    assert gps.at(2.0) is None
