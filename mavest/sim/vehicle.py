@@ -2,7 +2,9 @@
 
 Two forms. :func:`write_flight_tlog` writes a flight to a tlog as fast as it
 can: HEARTBEAT at 1 Hz, the IMU message per sample and SIMSTATE (the flight
-model's true attitude, as ArduPilot's simulator sends it) right after each.
+model's true attitude, as ArduPilot's simulator sends it) right after each,
+VFR_HUD (airspeed) and GPS (GPS_RAW_INT, GLOBAL_POSITION_INT with noisy
+velocity) at 10 Hz, and the vehicle's COMPASS_DEC as a PARAM_VALUE.
 :func:`stream_flight` sends the same in real time over a MAVLink link,
 honours MAV_CMD_SET_MESSAGE_INTERVAL for its IMU message, and scores every
 ATTITUDE that comes back against the truth of the sample it answers (matched
