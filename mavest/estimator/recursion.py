@@ -981,6 +981,9 @@ def accel_update(
         s.flags |= _ACCEL_INVALID
         return
     lowpass = c.accel_lowpass_time > 0.0
+    aided = _vector_is_finite(s.linear_accel)
+    if aided:
+        s.flags |= _ACCEL_AIDED
     if lowpass:
         if s.filters_primed == 2:  # primed with this very sample
             s.filters_primed = 1
@@ -990,13 +993,11 @@ def accel_update(
         so3.quat_rotate_into(s.w_q4, s.accel_world_lp[0], s.w_u3)  # R̄ᵀ f̄
     else:
         s.w_u3[:] = accel
-        if _vector_is_finite(s.linear_accel):  # f − R̄ᵀa (its heading coupling is not modelled)
+        if aided:  # f − R̄ᵀa (its heading coupling is not modelled)
             so3.quat_conjugate_into(s.q, s.w_q4)
             so3.quat_rotate_into(s.w_q4, s.linear_accel, s.w_v3)
             for i in range(3):
                 s.w_u3[i] -= s.w_v3[i]
-    if _vector_is_finite(s.linear_accel):
-        s.flags |= _ACCEL_AIDED
     f = s.w_u3
     norm = math.sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2)
     if not norm > _MIN_ACCEL_FRACTION * c.gravity:
