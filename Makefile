@@ -13,8 +13,9 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
+# the simulated vehicle is an ArduPilot one, so its configuration
 demo: $(STAMP)
-	$(BIN)/mavest demo
+	$(BIN)/mavest demo --config configs/ardupilot.toml
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -26,13 +26,14 @@ from mavest.viz.viewer import rerun_binary
 
 PROJECT = Path(__file__).resolve().parents[1]
 
-# Tilt error the estimator reaches on the turning JSBSim flights with GPS velocity
-# aiding: 0.6–1.0° RMS on most, 1.76° on seed 3 over 10–40 s (its first turn comes
-# before the gyro bias has settled, and the accelerometer bias, 0.08 m/s² there, is not
-# estimated); airspeed alone 2.2–3°, nothing 13–22°. See the README's known limits.
+# The bound on roll and pitch RMS (after 10 s in replay, 5 s live), for the
+# ArduPilot flights run with configs/ardupilot.toml: 40 s at 1 kHz, seeds 1–4, the
+# larger of roll and pitch is 0.93, 0.73, 0.91, 0.42°.
+ROLL_PITCH_BOUND = 1.0  # deg
+# Looser, for runs that are not the issue's: the default configuration's 0.5 °/s
+# gyro-bias prior on those flights (seed 3: pitch 1.8°), or the PX4 flavour.
 TURNING_FLIGHT_TILT_BOUND = 2.0  # deg
-# The bound, which the live run (seed 2) meets.
-LIVE_TILT_BOUND = 1.0  # deg
+ARDUPILOT_CONFIG = PROJECT / "configs" / "ardupilot.toml"
 
 
 def _messages(path: Path) -> list:
@@ -55,7 +56,8 @@ def flight_1khz(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_replay_of_a_1khz_tlog_answers_every_raw_imu(flight_1khz: Path, tmp_path: Path) -> None:
     out = tmp_path / "out.tlog"
-    report = asyncio.run(replay(flight_1khz, ServiceConfig(), Outputs(tlog=out)))
+    config = ServiceConfig.from_toml(ARDUPILOT_CONFIG)
+    report = asyncio.run(replay(flight_1khz, config, Outputs(tlog=out)))
     (stream,) = report.streams
     assert stream.stats.estimated == stream.stats.received == 40001
     assert stream.rate == pytest.approx(1000.0, rel=1e-3)
@@ -80,8 +82,7 @@ def test_replay_of_a_1khz_tlog_answers_every_raw_imu(flight_1khz: Path, tmp_path
 
     truth = stream.vs_truth.result()
     assert truth.count == 30001  # scored after 10 s
-    assert truth.inclination_rms < TURNING_FLIGHT_TILT_BOUND
-    assert max(truth.roll_rms, truth.pitch_rms) < TURNING_FLIGHT_TILT_BOUND
+    assert max(truth.roll_rms, truth.pitch_rms) < ROLL_PITCH_BOUND, truth
 
 
 def test_px4_flavour_is_estimated_from_highres_imu(tmp_path: Path) -> None:
@@ -143,7 +144,9 @@ def test_live_loopback_udp_500hz(tmp_path: Path) -> None:
     port = free_port(socket.SOCK_DGRAM)
     live_tlog, live_rrd = tmp_path / "live.tlog", tmp_path / "live.rrd"
     service = ServiceProcess(
-        f"udpin:127.0.0.1:{port}", "--out-tlog", str(live_tlog), "--rrd", str(live_rrd)
+        f"udpin:127.0.0.1:{port}",
+        *("--config", str(ARDUPILOT_CONFIG), "--request-rate", "0"),  # keep the 500 Hz
+        *("--out-tlog", str(live_tlog), "--rrd", str(live_rrd)),
     )
     report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{port}", 500.0, seed=2, seconds=25.0))
     code, summary = service.stop()
@@ -153,7 +156,7 @@ def test_live_loopback_udp_500hz(tmp_path: Path) -> None:
     assert report.answered_fraction >= 0.99, report.describe()
     assert report.answerers == ["1/191"]
     assert report.scored > 0.7 * report.sent  # scored after 5 s
-    assert max(report.roll_rms, report.pitch_rms) < LIVE_TILT_BOUND, report.describe()
+    assert max(report.roll_rms, report.pitch_rms) < ROLL_PITCH_BOUND, report.describe()
     assert "RAW_IMU[0] from 1/1 → ATTITUDE" in summary
     # the file written live is a valid tlog holding the input and our answers
     counts = Counter((m.get_type(), m.get_srcComponent()) for m in _messages(live_tlog))

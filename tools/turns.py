@@ -1,13 +1,14 @@
 """Tilt in turns: JSBSim flights replayed through the service with each acceleration aiding.
 
-    .venv/bin/python tools/turns.py [--seconds 120] [--seeds 1 2 3 4] [--markdown]
+    .venv/bin/python tools/turns.py [--seconds 120] [--seeds 1 2 3 4] [--config FILE] [--markdown]
 
 Each seed is a Cessna 172 flight (90° heading changes every 25–35 s, 30° of
 bank, light turbulence) written as ArduPilot RAW_IMU at 400 Hz with GPS at
 10 Hz, VFR_HUD and the truth (SIMSTATE), then replayed with
 ``acceleration_aiding`` auto (GPS velocity), airspeed (ω × V) and off, the
-same samples in the same run. Roll, pitch and tilt RMS against the truth after
-the replay's settle time (10 s).
+same samples in the same run, with the ArduPilot configuration
+(configs/ardupilot.toml; ``--config`` another). Roll, pitch and tilt RMS
+against the truth after the replay's settle time (10 s).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from mavest.service.runners import replay
 from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
 
 MODES = ("auto", "airspeed", "off")
+ARDUPILOT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ardupilot.toml"
 RATE = 400.0  # Hz, as `make demo`
 
 
@@ -34,9 +36,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--seconds", type=float, default=120.0, help="flight length (s)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
+    parser.add_argument(
+        "--config", type=Path, default=ARDUPILOT_CONFIG, help="mavest configuration (TOML)"
+    )
     parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
     args = parser.parse_args(argv)
 
+    base = ServiceConfig.from_toml(args.config)
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         for seed in args.seeds:
@@ -44,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
             write_flight_tlog(path, args.seconds, RATE, AUTOPILOTS["ardupilot"], seed=seed)
             cells = []
             for mode in MODES:
-                config = ServiceConfig().replace(input={"acceleration_aiding": mode})
+                config = base.replace(input={"acceleration_aiding": mode})
                 (stream,) = asyncio.run(replay(path, config)).streams
                 result = stream.vs_truth.result()
                 cells.append((result.roll_rms, result.pitch_rms, result.inclination_rms))

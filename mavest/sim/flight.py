@@ -312,13 +312,19 @@ class ImuErrors:
     The defaults are a MEMS IMU with some airframe vibration folded into the
     noise; they are below the filter's default assumptions on purpose, so the
     filter is conservatively tuned for them. The biases are drawn once per
-    seed, N(0, σ²) on each axis, and then held: a turn-on bias, the error the
-    filter must estimate.
+    seed, N(0, σ²) on each axis, and then held: what is left of the sensor's
+    offset in what the autopilot sends, the error the filter must estimate.
+
+    The gyro's is a residual, not a raw MEMS turn-on bias (~0.5 °/s): ArduPilot
+    subtracts the offsets it measures at boot (INS_GYR_CAL; in
+    ``AP_InertialSensor_Backend::_rotate_and_correct_gyro``) before RAW_IMU,
+    and the ArduPilot tlogs in the shared data read 0.005–0.04 °/s per axis at
+    rest (one 0.4 °/s). 0.1 °/s is that residual, on the generous side.
     """
 
     gyro_noise_density: float = 1e-3  # rad/s/√Hz
     accel_noise_density: float = 0.01  # m/s²/√Hz
-    gyro_bias_sigma: float = math.radians(0.5)  # rad/s per axis
+    gyro_bias_sigma: float = math.radians(0.1)  # rad/s per axis
     accel_bias_sigma: float = 0.05  # m/s² per axis
 
 

@@ -12,7 +12,7 @@ by ``time_boot_ms``): answered fraction, roll/pitch error, latency.
 
 The IMU is what the autopilots send: ArduPilot's RAW_IMU quantised to integer
 mG, mrad/s and mgauss, or PX4's HIGHRES_IMU in float SI; each with white noise
-and a turn-on bias (:class:`~mavest.sim.flight.ImuErrors`). Streaming, the
+and the bias the autopilot leaves in (:class:`~mavest.sim.flight.ImuErrors`). Streaming, the
 flight model runs at 1 kHz and each IMU sample is the mean of the model
 samples since the last one, the way an autopilot filters before it decimates.
 """
