@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -90,21 +91,49 @@ def euler_sigmas(euler: np.ndarray, cov_attitude: np.ndarray) -> np.ndarray:
     return out
 
 
+# What the recorder keeps of a sample until its batch is sent: a row of floats (vehicle
+# time, receive time (s), processing (s), roll, pitch, yaw, gyro x y z, accel x y z, whether
+# the accelerometer was used, the step's flags), built per sample as a tuple (the cheapest
+# thing to make in Python) and packed into a numpy block every _BLOCK rows, while the tuples
+# are still in the cache; a tuple and the floats it holds alive cost ~20× the 112 bytes.
+_T, _RX, _PROCESSING, _USED, _FLAGS = 0, 1, 2, 12, 13
+_EULER, _GYRO, _ACCEL = slice(3, 6), slice(6, 9), slice(9, 12)
+_FIELDS = 14
+_BLOCK = 64
+
+
+@dataclass
+class _References:
+    """One reference's attitudes (the autopilot's, the truth) since the last batch: only
+    those that start a slow_rate or a pose_rate slot, the only ones shown."""
+
+    # (t, receive s, roll, pitch, yaw, starts a slow slot, starts a pose slot)
+    rows: list[tuple[float, ...]] = field(default_factory=list)
+    slow_slot: float = math.nan  # see _StreamBuffer
+    pose_slot: float = math.nan
+
+
 @dataclass
 class _StreamBuffer:
     root: str
-    # (estimate, euler, gyro, accel, receive s, processing s) per sample: kept as the
-    # objects they are and turned into columns at flush, which costs far less per
-    # sample than converting each one as it comes
-    samples: list[tuple[Any, tuple, tuple, tuple, float, float]] = field(default_factory=list)
-    references: dict[str, list[tuple[float, float, float, float, float]]] = field(
-        default_factory=dict
-    )  # source → (t, receive, roll, pitch, yaw)
+    rows: list[tuple[float, ...]] = field(default_factory=list)  # < _BLOCK rows, as tuples
+    blocks: list[np.ndarray] = field(default_factory=list)  # the batch's rows, packed
+    packed: int = 0  # rows in blocks
+    # (row, estimate) of the samples that start a slow_rate slot, (row, q) of those that
+    # start a pose_rate slot, chosen as they come: the covariance, bias and update of the
+    # others are never shown, so their estimates are not kept
+    slow: list[tuple[int, Any]] = field(default_factory=list)
+    poses: list[tuple[int, np.ndarray]] = field(default_factory=list)
+    # The current slots as floor(t / period). A sample starts a slot when its own differs
+    # from the previous sample's: at most one sample per slot, the first in it, keeping
+    # the original samples (a decimation that does not resample). NaN before the first
+    # sample: every comparison with it fails, so the first sample starts a slot.
+    slow_slot: float = math.nan
+    pose_slot: float = math.nan
+    references: dict[str, _References] = field(default_factory=dict)  # by source
     # our last estimate already sent: the anchor for references just after a batch
     anchor: tuple[float, float, float, float] | None = None
-    last_pose_t: dict[str, float] = field(default_factory=dict)  # body → last posed time
-    last_slow_t: float = -math.inf  # last sample logged at the slow rate
-    last_reference_t: dict[str, float] = field(default_factory=dict)  # source → time
+    bodies: set[str] = field(default_factory=set)  # bodies already given their shapes
 
 
 class RerunRecorder:
@@ -113,7 +142,7 @@ class RerunRecorder:
     def __init__(
         self,
         recording: rr.RecordingStream,
-        batch_rows: int = 32768,
+        batch_rows: int = 32768,  # a multiple of 64 (others are rounded up)
         batch_seconds: float = 2.0,  # a live viewer wants less: see ``for_viewer``
         pose_rate: float = 50.0,
         slow_rate: float = 100.0,
@@ -131,9 +160,15 @@ class RerunRecorder:
 
     @classmethod
     def for_viewer(cls, recording: rr.RecordingStream, live: bool) -> RerunRecorder:
-        """Batches of 0.25 s for a live viewer (it should feel live), 2 s for a file only
-        (bigger chunks cost less to encode)."""
-        return cls(recording, batch_rows=4096, batch_seconds=0.25 if live else 2.0)
+        """Batches of 0.25 s for a live viewer (it should feel live), 2 s for a file only.
+
+        A file's batches may be large: each costs ~10 ms of ~30 ``send_columns`` calls
+        and as many chunks to encode whatever its size, while a row waiting costs 112
+        bytes; a replay (~6 k samples/s) sends ~12 k rows a batch, not 4096.
+        """
+        if live:
+            return cls(recording, batch_rows=4096, batch_seconds=0.25)
+        return cls(recording, batch_rows=32768, batch_seconds=2.0)
 
     # ------------------------------------------------------------ sink interface
 
@@ -161,22 +196,63 @@ class RerunRecorder:
         receive_us: int,
         processing_s: float,
     ) -> None:
+        # At the IMU rate: a tuple per sample, the slot tests; the rest per block or batch.
         buffer = self._last if stream.key is self._last_key else self._switch(stream)
-        samples = buffer.samples
-        samples.append(
-            (estimate, euler, sample.gyro, sample.accel, receive_us * 1e-6, processing_s)
+        rows = buffer.rows
+        t = estimate.t
+        slot = t / self.slow_period  # x // 1.0 is floor(x), and NaN (no error) if not finite
+        if not buffer.slow_slot <= slot < buffer.slow_slot + 1.0:
+            buffer.slow_slot = slot // 1.0
+            buffer.slow.append((buffer.packed + len(rows), estimate))
+        slot = t / self.pose_period
+        if not buffer.pose_slot <= slot < buffer.pose_slot + 1.0:
+            buffer.pose_slot = slot // 1.0
+            buffer.poses.append((buffer.packed + len(rows), estimate.q))
+        gyro, accel = sample.gyro, sample.accel
+        rows.append(
+            (
+                t,
+                receive_us * 1e-6,
+                processing_s,
+                *euler,
+                *gyro,
+                *accel,
+                estimate.accel_used,
+                estimate.flags,
+            )
         )
-        count = len(samples)
-        if count >= self.batch_rows or (
-            count % 64 == 0 and time.monotonic() - self._last_flush >= self.batch_seconds
+        if len(rows) == _BLOCK:
+            self._pack(buffer)
+
+    def _pack(self, buffer: _StreamBuffer) -> None:
+        """The rows made into a block; the batch sent when full or old enough."""
+        buffer.blocks.append(_packed(buffer.rows))
+        buffer.packed += len(buffer.rows)
+        buffer.rows.clear()
+        if (
+            buffer.packed >= self.batch_rows
+            or time.monotonic() - self._last_flush >= self.batch_seconds
         ):
             self.flush()
 
     def on_reference(
         self, stream: Any, source: str, t: float, euler: tuple, receive_us: int = 0
     ) -> None:
-        buffer = self._buffer(stream)
-        buffer.references.setdefault(source, []).append((t, receive_us * 1e-6, *euler))
+        # at the IMU rate for a simulator's truth: kept only if it starts a slot
+        buffer = self._last if stream.key is self._last_key else self._switch(stream)
+        references = buffer.references.get(source)
+        if references is None:
+            references = buffer.references[source] = _References()
+        slot = t / self.slow_period
+        slow = not references.slow_slot <= slot < references.slow_slot + 1.0
+        if slow:
+            references.slow_slot = slot // 1.0
+        slot = t / self.pose_period
+        pose = not references.pose_slot <= slot < references.pose_slot + 1.0
+        if pose:
+            references.pose_slot = slot // 1.0
+        if slow or pose:
+            references.rows.append((t, receive_us * 1e-6, *euler, slow, pose))
 
     # ------------------------------------------------------------ sending
 
@@ -244,113 +320,121 @@ class RerunRecorder:
         )
         rec.log(f"{body}/label", rr.Points3D([[0, 0, -1.2]], labels=[source]), static=True)
 
-    def _send(
-        self, entity: str, times: np.ndarray, receive: np.ndarray | None, values: Any
-    ) -> None:
-        """One entity's rows; (N, k) values are k series of one entity."""
-        values = np.asarray(values, dtype=np.float64)
-        indexes = [rr.TimeColumn(VEHICLE_TIME, duration=times)]
+    @staticmethod
+    def _index(times: np.ndarray, receive: np.ndarray | None) -> list[rr.TimeColumn]:
+        """The time columns of some rows (built once and shared by the entities that have
+        the same rows: a batch's full-rate series, its slow_rate series)."""
+        index = [rr.TimeColumn(VEHICLE_TIME, duration=times)]
         if receive is not None:
-            indexes.append(rr.TimeColumn(RECEIVE_TIME, timestamp=receive))
+            index.append(rr.TimeColumn(RECEIVE_TIME, timestamp=receive))
+        return index
+
+    def _send(self, entity: str, index: list[rr.TimeColumn], values: np.ndarray) -> None:
+        """One entity's rows; (N, k) values are k series of one entity."""
         columns = rr.Scalars.columns(scalars=values.reshape(-1))
         if values.ndim == 2:
             columns = columns.partition(np.full(len(values), values.shape[1]))
-        rr.send_columns(entity, indexes=indexes, columns=columns, recording=self.recording)
+        rr.send_columns(entity, indexes=index, columns=columns, recording=self.recording)
 
     def _flush_stream(self, buffer: _StreamBuffer) -> None:
         root = buffer.root
-        n = len(buffer.samples)
+        blocks = buffer.blocks
+        if buffer.rows:
+            blocks.append(_packed(buffer.rows))
+            buffer.rows.clear()
+        buffer.blocks, buffer.packed = [], 0
+        n = sum(len(block) for block in blocks) // _FIELDS
         if n:
-            estimates, eulers, gyros, accels, receives, processing = zip(
-                *buffer.samples, strict=True
-            )
-            buffer.samples.clear()
-            t = np.fromiter((e.t for e in estimates), float, n)
-            rx = np.array(receives)
-            euler = np.array(eulers)
+            data = np.concatenate(blocks).reshape(n, _FIELDS)
+            t, rx = data[:, _T], data[:, _RX]
+            euler = data[:, _EULER]
+            index = self._index(t, rx)
             angle = np.degrees(euler)
             for i, axis in enumerate(("roll", "pitch", "yaw")):
-                self._send(f"{root}/attitude/{axis}/mavest", t, rx, angle[:, i])
+                self._send(f"{root}/attitude/{axis}/mavest", index, angle[:, i])
             # Uncertainty and bias change slowly: at up to slow_rate, from those samples only.
-            slow = _grid_samples(t, self.slow_period, buffer.last_slow_t)
+            slow_rows, buffer.slow = buffer.slow, []
+            slow = np.fromiter((row for row, _ in slow_rows), np.intp, len(slow_rows))
+            estimates = [estimate for _, estimate in slow_rows]
             if len(slow):
-                buffer.last_slow_t = t[slow[-1]]
-                ts, rxs = t[slow], rx[slow]
-                covariance = np.array([estimates[k].cov for k in slow])
+                slow_index = self._index(t[slow], rx[slow])
+                covariance = np.array([estimate.cov for estimate in estimates])
                 band = 3.0 * np.degrees(euler_sigmas(euler[slow], covariance[:, :3, :3]))
                 for i, axis in enumerate(("roll", "pitch", "yaw")):
                     bounds = np.column_stack(
                         [angle[slow, i] + band[:, i], angle[slow, i] - band[:, i]]
                     )
-                    self._send(f"{root}/attitude/{axis}/mavest_3sigma", ts, rxs, bounds)
-                bias = np.degrees(np.array([estimates[k].bias for k in slow]))
+                    self._send(f"{root}/attitude/{axis}/mavest_3sigma", slow_index, bounds)
+                bias = np.degrees(np.array([estimate.bias for estimate in estimates]))
                 bias_variance = np.diagonal(covariance[:, 3:, 3:], axis1=1, axis2=2)
                 bias_sigma = np.degrees(np.sqrt(np.maximum(bias_variance, 0.0)))
                 for i, axis in enumerate("xyz"):
                     series = np.column_stack(
                         [bias[:, i], bias[:, i] + bias_sigma[:, i], bias[:, i] - bias_sigma[:, i]]
                     )
-                    self._send(f"{root}/bias/{axis}", ts, rxs, series)
-            self._send(f"{root}/imu/gyro", t, rx, np.degrees(np.array(gyros)))
-            self._send(f"{root}/imu/accel", t, rx, np.array(accels))
-            if len(slow):
-                self._send_update(root, estimates, slow, t, rx)
-            self._send(f"{root}/timing/processing_us", t, rx, 1e6 * np.array(processing))
-            self._send_poses(buffer, "mavest", t, estimates)
-        if n:
+                    self._send(f"{root}/bias/{axis}", slow_index, series)
+                self._send_update(root, data, estimates, slow, slow_index)
+            self._send(f"{root}/imu/gyro", index, np.degrees(data[:, _GYRO]))
+            self._send(f"{root}/imu/accel", index, data[:, _ACCEL])
+            self._send(f"{root}/timing/processing_us", index, 1e6 * data[:, _PROCESSING])
+            pose_rows, buffer.poses = buffer.poses, []
+            posed = [row for row, _ in pose_rows]
+            self._send_poses(buffer, "mavest", t[posed], np.array([q for _, q in pose_rows]))
             buffer.anchor = (t[-1], *euler[-1])
         for source, references in buffer.references.items():
-            if not references:
+            if not references.rows:
                 continue
-            everything = np.array(references)
-            references.clear()
-            self._send_poses(buffer, source, everything[:, 0], everything[:, 2:5])
+            kept = np.array(references.rows)  # t, receive, roll, pitch, yaw, slow, pose
+            references.rows.clear()
+            posed = kept[kept[:, 6] != 0]
+            self._send_poses(buffer, source, posed[:, 0], so3.quats_from_euler_zyx(posed[:, 2:5]))
             # a reference at the IMU rate (a simulator's truth) is plotted at up to slow_rate
-            last = buffer.last_reference_t.get(source, -math.inf)
-            kept = _grid_samples(everything[:, 0], self.slow_period, last)
-            if not len(kept):
+            data = kept[kept[:, 5] != 0]
+            if not len(data):
                 continue
-            data = everything[kept]
-            buffer.last_reference_t[source] = data[-1, 0]
             receive = data[:, 1] if np.all(data[:, 1] > 0) else None
+            reference_index = self._index(data[:, 0], receive)
             for i, axis in enumerate(("roll", "pitch", "yaw")):
                 self._send(
                     f"{root}/attitude/{axis}/{source}",
-                    data[:, 0],
-                    receive,
+                    reference_index,
                     np.degrees(data[:, 2 + i]),
                 )
             if n:
                 self._send_differences(buffer, source, t, euler, data)
 
     def _send_update(
-        self, root: str, estimates: tuple, slow: np.ndarray, t: np.ndarray, rx: np.ndarray
+        self,
+        root: str,
+        data: np.ndarray,
+        estimates: list[Any],
+        slow: np.ndarray,
+        slow_index: list[rr.TimeColumn],
     ) -> None:
-        """The accelerometer update, per ``slow_rate`` slot (``slow``: each slot's first)."""
-        ts, rxs = t[slow], rx[slow]
-        innovation = np.array([estimates[k].innovation for k in slow])
-        self._send(f"{root}/innovation", ts, rxs, np.degrees(innovation))
-        nis = np.fromiter((estimates[k].nis for k in slow), float, len(slow))
+        """The accelerometer update, per ``slow_rate`` slot (``slow``: each slot's first row
+        in ``data``, ``estimates`` its estimate)."""
+        innovation = np.array([estimate.innovation for estimate in estimates])
+        self._send(f"{root}/innovation", slow_index, np.degrees(innovation))
+        ts, rxs = data[slow, _T], data[slow, _RX]
+        nis = np.fromiter((estimate.nis for estimate in estimates), float, len(estimates))
         measured = np.isfinite(nis)
         if np.any(measured):
-            self._send(f"{root}/nis/value", ts[measured], rxs[measured], nis[measured])
+            self._send(f"{root}/nis/value", self._index(ts[measured], rxs[measured]), nis[measured])
         ends = [0, len(slow) - 1] if len(slow) > 1 else [0]  # a constant band: its ends
         self._send(
             f"{root}/nis/chi2_band",
-            ts[ends],
-            rxs[ends],
+            self._index(ts[ends], rxs[ends]),
             np.tile([CHI2_2_LOW, CHI2_2_HIGH], (len(ends), 1)),
         )
-        n = len(estimates)
-        used = np.fromiter((e.accel_used for e in estimates), float, n)
-        flags = np.fromiter((e.flags for e in estimates), np.int64, n)
+        used = data[:, _USED]
+        flags = data[:, _FLAGS].astype(np.int64)
         disturbed = ((flags & StepFlags.ACCEL_DISTURBED) != 0).astype(float)
         # fractions per slot; the first slot may have begun in the previous batch
-        counts = np.diff(np.append(slow, n))
+        counts = np.diff(np.append(slow, len(data)))
         fractions = np.column_stack(
             [np.add.reduceat(used, slow) / counts, np.add.reduceat(disturbed, slow) / counts]
         )
-        self._send(f"{root}/accel", ts, rxs, fractions)
+        self._send(f"{root}/accel", slow_index, fractions)
 
     def _send_differences(
         self,
@@ -379,30 +463,23 @@ class RerunRecorder:
         ours = np.column_stack([np.interp(at, times, unwrapped[:, i]) for i in range(3)])
         difference = ours - references[inside, 2:5]
         difference[:, [0, 2]] = wrap_angles(difference[:, [0, 2]])
+        index = self._index(at, None)
         for i, axis in enumerate(("roll", "pitch", "yaw")):
             self._send(
-                f"{buffer.root}/error/{axis}/vs_{source}",
-                at,
-                None,
-                np.degrees(difference[:, i]),
+                f"{buffer.root}/error/{axis}/vs_{source}", index, np.degrees(difference[:, i])
             )
 
-    def _send_poses(self, buffer: _StreamBuffer, body: str, t: np.ndarray, attitude: Any) -> None:
-        """Body poses at up to ``pose_rate`` (3-D needs no more than the eye sees);
-        ``attitude``: our estimates, or (N, 3) ZYX angles of a reference."""
-        if body not in buffer.last_pose_t:
+    def _send_poses(self, buffer: _StreamBuffer, body: str, t: np.ndarray, q: np.ndarray) -> None:
+        """Body poses, already thinned to ``pose_rate`` (3-D needs no more than the eye
+        sees); ``q``: (N, 4) w, x, y, z. The body's shapes go first, once."""
+        if body not in buffer.bodies:
+            buffer.bodies.add(body)
             self._log_body(buffer, body)
-        keep = _grid_samples(t, self.pose_period, buffer.last_pose_t.get(body, -math.inf))
-        if not len(keep):
+        if not len(t):
             return
-        buffer.last_pose_t[body] = t[keep[-1]]
-        if isinstance(attitude, np.ndarray):
-            q = so3.quats_from_euler_zyx(attitude[keep])
-        else:
-            q = np.array([attitude[k].q for k in keep])
         rr.send_columns(
             f"world/{buffer.root}/{body}/attitude",
-            indexes=[rr.TimeColumn(VEHICLE_TIME, duration=t[keep])],
+            indexes=[rr.TimeColumn(VEHICLE_TIME, duration=t)],
             columns=rr.Transform3D.columns(quaternion=q[:, [1, 2, 3, 0]]),  # x, y, z, w
             recording=self.recording,
         )
@@ -417,11 +494,6 @@ class RerunRecorder:
         self.flush()
 
 
-def _grid_samples(t: np.ndarray, period: float, last: float) -> np.ndarray:
-    """Indices of the samples that start a new ``period`` slot after ``last`` (at most one
-    per slot, the first in it): a decimation that keeps the original samples."""
-    slots = np.floor(t / period)
-    previous = np.concatenate(
-        [[math.floor(last / period) if math.isfinite(last) else -np.inf], slots[:-1]]
-    )
-    return np.flatnonzero(slots != previous)
+def _packed(rows: list[tuple[float, ...]]) -> np.ndarray:
+    """Sample rows as one flat float array (row after row)."""
+    return np.fromiter(chain.from_iterable(rows), float, len(rows) * _FIELDS)
