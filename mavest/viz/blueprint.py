@@ -31,7 +31,7 @@ def stream_layout(root: str) -> rrb.Horizontal:
     attitude = rrb.Vertical(
         _series(f"{root}/attitude/roll", "roll (°): mavest ±3σ, autopilot, truth"),
         _series(f"{root}/attitude/pitch", "pitch (°)"),
-        _series(f"{root}/attitude/yaw", "yaw (°): free without a heading reference"),
+        _series(f"{root}/attitude/yaw", "yaw (°): from the magnetometer, free (6-D) without one"),
     )
     details = rrb.Tabs(
         rrb.Vertical(
