@@ -95,7 +95,8 @@ def euler_sigmas(euler: np.ndarray, cov_attitude: np.ndarray) -> np.ndarray:
 # time, receive time (s), processing (s), roll, pitch, yaw, gyro x y z, accel x y z, whether
 # the accelerometer was used, the step's flags), built per sample as a tuple (the cheapest
 # thing to make in Python) and packed into a numpy block every _BLOCK rows, while the tuples
-# are still in the cache; a tuple and the floats it holds alive cost ~20× the 112 bytes.
+# are still in the cache: 112 bytes a row, where the tuple and the floats it holds alive
+# take ~4× that, and the estimate (its covariance, ...) ~10×.
 _T, _RX, _PROCESSING, _USED, _FLAGS = 0, 1, 2, 12, 13
 _EULER, _GYRO, _ACCEL = slice(3, 6), slice(6, 9), slice(9, 12)
 _FIELDS = 14
@@ -162,9 +163,9 @@ class RerunRecorder:
     def for_viewer(cls, recording: rr.RecordingStream, live: bool) -> RerunRecorder:
         """Batches of 0.25 s for a live viewer (it should feel live), 2 s for a file only.
 
-        A file's batches may be large: each costs ~10 ms of ~30 ``send_columns`` calls
-        and as many chunks to encode whatever its size, while a row waiting costs 112
-        bytes; a replay (~6 k samples/s) sends ~12 k rows a batch, not 4096.
+        A file's batches may be large: each costs ~8 ms (~30 ``send_columns`` calls, as
+        many chunks to encode) whatever its size, while a row waiting costs 112 bytes; a
+        replay (~6 k samples/s) sends ~12 k rows a batch, not 4096.
         """
         if live:
             return cls(recording, batch_rows=4096, batch_seconds=0.25)
