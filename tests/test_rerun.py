@@ -21,6 +21,7 @@ from rerun.chunk import RrdReader
 from mavest.cli import main
 from mavest.service.process import ServiceProcess, free_port
 from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
+from mavest.viz.recorder import _Slots
 from mavest.viz.viewer import rerun_binary
 
 PROJECT = Path(__file__).resolve().parents[1]
@@ -146,6 +147,25 @@ def test_uncertainty_bias_and_update_series(recorded: dict[str, Path]) -> None:
     # the 3-D bodies: posed at up to 50 Hz
     poses = _rows(recorded["rrd"], f"/world{ROOT}/mavest/attitude", "Transform3D:quaternion")
     assert 0.5 * SECONDS * 50 < poses <= SECONDS * 50 + 2
+
+
+def test_slots_pick_the_first_sample_of_each_slot() -> None:
+    """The inline interval test plus ``advance`` choose exactly the samples whose
+    floor(t / period) differs from the previous sample's, also on the slots' boundaries
+    (times on the millisecond grid) and far from zero, where rounding is coarser."""
+    for start, step in ((0.0, 1e-3), (86_400.0, 1e-3), (3.0, 7.3e-4), (0.0, 0.02)):
+        t = start + step * np.arange(3000)
+        slots = _Slots(0.01, 0.02)
+        chosen = []
+        for t_k in t:
+            starts = (False, False)
+            if not slots.since <= t_k < slots.until:
+                starts = slots.advance(float(t_k))
+            chosen.append(starts)
+        for column, period in enumerate((0.01, 0.02)):
+            slot = np.floor(t / period)
+            expected = np.concatenate([[True], slot[1:] != slot[:-1]])
+            np.testing.assert_array_equal([c[column] for c in chosen], expected)
 
 
 def test_recording_is_valid_and_carries_its_layout(recorded: dict[str, Path]) -> None:

@@ -10,7 +10,12 @@ IMU packet sent → ATTITUDE received, matched by ``time_boot_ms``. Replay: a
 message of the same file (``recv_msg`` until the end), in the same run.
 Rerun: the same replay with and without ``--rrd`` in interleaved rounds, CPU
 time (user + system) of the whole command; the ratio is what recording costs.
-``--only rerun`` (or live, replay) runs one part.
+``--instructions`` adds the same comparison counted in instructions under valgrind
+(callgrind, every thread of the replay, Rerun's encoder and writer included), which a
+busy machine does not disturb: 2 s and ``--instruction-seconds`` flights with and
+without ``--rrd``, the cost per simulated second taken between the two lengths so that
+start-up (imports, the numba cache, opening the recording) falls out; the longer pair
+is run twice to show the count repeats. ``--only rerun`` (or live, replay) runs one part.
 """
 
 from __future__ import annotations
@@ -20,8 +25,10 @@ import asyncio
 import os
 import socket
 import subprocess
+import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -116,12 +123,127 @@ def rerun_cost(seconds: float, workdir: Path, rounds: int) -> dict[str, float]:
     }
 
 
+# What llvmlite sees of the CPU, printed by a child process.
+_CPU_PROBE = (
+    "import llvmlite.binding as ll; print(ll.get_host_cpu_name()); "
+    "print(ll.get_host_cpu_features().flatten())"
+)
+SHORT_SECONDS = 2.0  # the shorter flight of --instructions
+
+
+def _instruction_environment(workdir: Path) -> dict[str, str]:
+    """The environment for counting: numba compiling for the CPU valgrind shows, cached.
+
+    valgrind's virtual CPU has fewer features than the host (here haswell without adx,
+    sha, ... on a znver3): numba keys its cache on the CPU, so a replay under valgrind
+    would miss the cache and compile every kernel at valgrind's speed, and count it. So
+    the kernels are compiled for valgrind's CPU (NUMBA_CPU_NAME/FEATURES) by a native
+    run first, into a cache of their own; a fixed hash seed makes the runs alike.
+    """
+    probe = subprocess.run(
+        ["valgrind", "--tool=none", "-q", sys.executable, "-c", _CPU_PROBE],
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    name, features = probe.stdout.split()[:2]
+    return {
+        **os.environ,
+        "NUMBA_CPU_NAME": name,
+        "NUMBA_CPU_FEATURES": features,
+        "MAVEST_CACHE_DIR": str(workdir / "numba-valgrind-cpu"),
+        "PYTHONHASHSEED": "0",
+    }
+
+
+def _instructions(command: list[str], out: Path, environment: dict[str, str]) -> int:
+    """Instructions executed by a command (all its threads, not its children)."""
+    subprocess.run(
+        [
+            "valgrind",
+            "--tool=callgrind",
+            "--trace-children=no",
+            f"--callgrind-out-file={out}",
+            *command,
+        ],
+        check=True,
+        capture_output=True,
+        env=environment,
+    )
+    with out.open() as lines:
+        for line in lines:
+            if line.startswith("summary:"):
+                return int(line.split()[1])
+    raise RuntimeError(f"no summary in {out}")
+
+
+def rerun_instructions(seconds: float, workdir: Path, jobs: int) -> dict[str, float]:
+    """Instructions of the replay without and with ``--rrd`` at two flight lengths.
+
+    The marginal cost per simulated second, (long − short) / (seconds − 2), leaves out
+    what does not grow with the flight (start-up, the static entities, the bodies'
+    shapes, the last flush); at 1 kHz a file's batch is 32768 rows, so both lengths
+    flush once, at the end, and each further batch would add ~30 ``send_columns`` calls
+    per 32.8 s of flight (the whole long run's ratio is shown too). The long pair is run
+    twice: a count that repeats shows nothing compiled or timed differently.
+    """
+    environment = _instruction_environment(workdir)
+    flights = {}
+    for length in (SHORT_SECONDS, seconds):
+        flights[length] = workdir / f"flight_instructions_{length:g}s.tlog"
+        write_flight_tlog(flights[length], length, 1000.0, AUTOPILOTS["ardupilot"], seed=2)
+
+    def command(length: float, rrd: bool, run: int = 0) -> list[str]:
+        plain = [*MAVEST, "replay", str(flights[length]), "-q"]
+        return [*plain, "--rrd", str(workdir / f"i{length:g}_{run}.rrd")] if rrd else plain
+
+    # warm the cache (compiled for valgrind's CPU) natively: nothing compiles when counted
+    subprocess.run(command(SHORT_SECONDS, True), check=True, capture_output=True, env=environment)
+    runs = {
+        (rrd, length, run): command(length, rrd, run)
+        for rrd in (False, True)
+        for length, run in ((SHORT_SECONDS, 0), (seconds, 0), (seconds, 1))
+    }
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        futures = {
+            key: pool.submit(_instructions, cmd, workdir / f"callgrind.{i}", environment)
+            for i, (key, cmd) in enumerate(runs.items())
+        }
+        counts = {key: future.result() for key, future in futures.items()}
+    result: dict[str, float] = {"seconds": seconds}
+    for rrd, name in ((False, "without"), (True, "with")):
+        short, long_, again = (
+            counts[rrd, SHORT_SECONDS, 0],
+            counts[rrd, seconds, 0],
+            counts[rrd, seconds, 1],
+        )
+        result[f"{name} short"] = short
+        result[f"{name} long"] = long_
+        result[f"{name} again"] = again
+        result[f"{name} per s"] = (long_ - short) / (seconds - SHORT_SECONDS)
+    result["ratio"] = result["with per s"] / result["without per s"]
+    result["whole ratio"] = result["with long"] / result["without long"]
+    return result
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="live stream length")
     parser.add_argument("--rate", type=float, default=1000.0, help="live IMU rate, Hz")
     parser.add_argument("--replay-seconds", type=float, default=60.0, help="1 kHz tlog length")
     parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds for Rerun's cost")
+    parser.add_argument(
+        "--instructions",
+        action="store_true",
+        help="also count Rerun's cost in instructions under valgrind (a few minutes)",
+    )
+    parser.add_argument(
+        "--instruction-seconds",
+        type=float,
+        default=8.0,
+        help="the longer 1 kHz flight counted (the shorter is 2 s)",
+    )
+    parser.add_argument("--jobs", type=int, default=2, help="valgrind runs at a time")
     parser.add_argument(
         "--only",
         choices=PARTS,
@@ -143,7 +265,11 @@ def main() -> int:
         if "replay" in parts:
             print_replay(replay_throughput(args.replay_seconds, Path(workdir)), args)
         if "rerun" in parts:
-            print_rerun(rerun_cost(args.replay_seconds, Path(workdir), args.rounds), args)
+            cost = rerun_cost(args.replay_seconds, Path(workdir), args.rounds)
+            counted = None
+            if args.instructions:
+                counted = rerun_instructions(args.instruction_seconds, Path(workdir), args.jobs)
+            print_rerun(cost, counted, args)
     return 0
 
 
@@ -163,17 +289,59 @@ def print_replay(replayed: dict[str, float], args: argparse.Namespace) -> None:
     )
 
 
-def print_rerun(cost: dict[str, float], args: argparse.Namespace) -> None:
+def print_rerun(
+    cost: dict[str, float], counted: dict[str, float] | None, args: argparse.Namespace
+) -> None:
     print(
         f"\nRerun recording at 1 kHz ({args.replay_seconds:g} s replay, CPU s of the whole "
-        f"command, medians of {args.rounds} interleaved rounds)"
+        f"command, medians of {args.rounds} interleaved rounds"
+        + (
+            "; instructions per simulated second under valgrind, between "
+            f"{SHORT_SECONDS:g} s and {args.instruction_seconds:g} s flights)"
+            if counted
+            else ")"
+        )
     )
-    print("| replay | CPU s | × without (rounds' range) |")
-    print("|---|---:|---:|")
-    print(f"| without `--rrd` | {cost['without']:.2f} | 1 |")
+    if counted is None:
+        print("| replay | CPU s | × without (rounds' range) |")
+        print("|---|---:|---:|")
+        print(f"| without `--rrd` | {cost['without']:.2f} | 1 |")
+        print(
+            f"| with `--rrd` ({cost['rrd MB']:.1f} MB) | {cost['with']:.2f} | "
+            f"{cost['ratio']:.3f} ({cost['ratio min']:.3f}–{cost['ratio max']:.3f}) |"
+        )
+        return
+    print("| replay | CPU s | × without (rounds' range) | instructions / simulated s | × without |")
+    print("|---|---:|---:|---:|---:|")
+    print(
+        f"| without `--rrd` | {cost['without']:.2f} | 1 | "
+        f"{counted['without per s'] / 1e6:,.1f} M | 1 |"
+    )
     print(
         f"| with `--rrd` ({cost['rrd MB']:.1f} MB) | {cost['with']:.2f} | "
-        f"{cost['ratio']:.3f} ({cost['ratio min']:.3f}–{cost['ratio max']:.3f}) |"
+        f"{cost['ratio']:.3f} ({cost['ratio min']:.3f}–{cost['ratio max']:.3f}) | "
+        f"{counted['with per s'] / 1e6:,.1f} M | **{counted['ratio']:.4f}** |"
+    )
+    seconds = counted["seconds"]
+    print(
+        f"\nInstructions (valgrind --tool=callgrind, all threads), whole commands; the "
+        f"{seconds:g} s one twice"
+    )
+    print(
+        f"| replay | {SHORT_SECONDS:g} s flight | {seconds:g} s flight | again | repeat "
+        f"difference | ({seconds:g} s − {SHORT_SECONDS:g} s) / {seconds - SHORT_SECONDS:g} s |"
+    )
+    print("|---|---:|---:|---:|---:|---:|")
+    for name in ("without", "with"):
+        long_, again = counted[f"{name} long"], counted[f"{name} again"]
+        print(
+            f"| {name} `--rrd` | {counted[f'{name} short']:,.0f} | {long_:,.0f} | "
+            f"{again:,.0f} | {100.0 * (again - long_) / long_:+.3f} % | "
+            f"{counted[f'{name} per s']:,.0f} |"
+        )
+    print(
+        f"| × without | {counted['with short'] / counted['without short']:.4f} | "
+        f"{counted['whole ratio']:.4f} | | | **{counted['ratio']:.4f}** |"
     )
 
 

@@ -94,6 +94,12 @@ class EstimatorConfig:
     # innovation (0: off); disturbed this long, the attitude gets the blame.
     accel_gate: float = 5.99
     accel_max_disturbance_time: float = 10.0  # s
+    # Divergence: tilt reopened a second time within this window means reopening
+    # did not cure it (a confidently wrong gyro bias drags the attitude away again):
+    # the filter is re-initialised, bias from its prior (0: never). No shared log or
+    # BROAD trial reopens tilt; simulated 120 s flights with long turns and no GPS
+    # do, once at most (3 of 8 at 200 Hz).
+    divergence_window: float = 30.0  # s
     # Low-pass of the specific force in the estimated world frame (0: off). Linear
     # acceleration integrates to a bounded velocity change, so it averages out
     # while gravity stays (VQF's idea, Laidig & Seel 2023). The filter state is
@@ -213,6 +219,7 @@ class EstimatorConfig:
             "accel_norm_tolerance",
             "accel_gate",
             "accel_max_disturbance_time",
+            "divergence_window",
             "accel_lowpass_time",
             "accel_lowpass_restart_angle",
             "rest_filter_time",

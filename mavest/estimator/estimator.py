@@ -327,6 +327,16 @@ class Estimator:
         return int(self._state["accel_rejections"][0])
 
     @property
+    def unhealthy_resets(self) -> int:
+        """Re-initialisations after a failed health check (StepFlags.UNHEALTHY_RESET)."""
+        return int(self._state["unhealthy_resets"][0])
+
+    @property
+    def divergence_resets(self) -> int:
+        """Re-initialisations after a divergence (StepFlags.DIVERGED)."""
+        return int(self._state["divergence_resets"][0])
+
+    @property
     def declination(self) -> float:
         """Magnetic declination in use (rad, east positive); starts as ``config.compass_dec``."""
         return float(self._coefficients["mag_declination"][0])

@@ -59,6 +59,12 @@ class StepFlags:
     MAG_REFERENCE_CHANGED = 32768  # a steady new field became the reference
     HEADING_REOPENED = 65536  # magnetometer rejected too long: heading uncertain again
     ACCEL_AIDED = 131072  # the vehicle's known acceleration (GPS) was removed from the sample
+    # the state failed its health check (not finite, covariance not positive
+    # definite or beyond bounds): re-initialised from this sample
+    UNHEALTHY_RESET = 262144
+    # the accelerometer contradicted the attitude again soon after tilt was
+    # reopened (divergence_window): re-initialised from this sample
+    DIVERGED = 524288
 
     SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING
 
@@ -93,6 +99,7 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("accel_norm_tolerance", np.float64),
         ("accel_gate", np.float64),
         ("accel_max_disturbance_time", np.float64),
+        ("divergence_window", np.float64),
         ("initial_tilt_var", np.float64),
         ("initial_heading_var", np.float64),
         ("initial_bias_var", np.float64),
@@ -140,6 +147,9 @@ STATE_DTYPE = np.dtype(
         ("samples", np.int64),
         ("accel_rejections", np.int64),  # samples not used (norm beyond tolerance)
         ("accel_disturbances", np.int64),  # samples used with inflated noise
+        ("t_reopened", np.float64),  # when tilt was last reopened, s
+        ("unhealthy_resets", np.int64),  # re-initialisations after a failed health check
+        ("divergence_resets", np.int64),  # re-initialisations after a divergence
         # filters feeding the measurements
         # low-passed specific force f̄ and its rate ḟ, estimated world frame
         ("accel_world_lp", np.float64, (2, 3)),
@@ -246,6 +256,7 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["accel_norm_tolerance"] = config.accel_norm_tolerance
     c["accel_gate"] = config.accel_gate
     c["accel_max_disturbance_time"] = config.accel_max_disturbance_time
+    c["divergence_window"] = config.divergence_window
     c["initial_tilt_var"] = config.initial_tilt_sigma**2
     c["initial_heading_var"] = config.initial_heading_sigma**2
     c["initial_bias_var"] = config.initial_bias_sigma**2
@@ -306,4 +317,5 @@ def new_state(coefficients: np.ndarray) -> np.ndarray:
     s["t_mag"] = -np.inf
     s["t_mag_used"] = -np.inf
     s["innovation"] = np.nan
+    s["t_reopened"] = -np.inf
     return s

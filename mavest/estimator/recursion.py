@@ -119,6 +119,8 @@ _HEADING_ALIGNED = StepFlags.HEADING_ALIGNED
 _MAG_REFERENCE_CHANGED = StepFlags.MAG_REFERENCE_CHANGED
 _HEADING_REOPENED = StepFlags.HEADING_REOPENED
 _ACCEL_AIDED = StepFlags.ACCEL_AIDED
+_UNHEALTHY_RESET = StepFlags.UNHEALTHY_RESET
+_DIVERGED = StepFlags.DIVERGED
 
 
 # --------------------------------------------------------------------------
@@ -240,18 +242,32 @@ def _set_attitude_covariance_world(
     what is kept keeps its variance and its covariances.
     """
     n = c.n_state
-    _error_frame_from_world(s, c)  # M (world → error frame) in w_m33
-    for i in range(3):
-        for j in range(3):
-            s.w_n33[i, j] = s.w_m33[j, i]  # Mᵀ: error frame → world
-    # a change of coordinates of δθ only, not a move of the reference
-    _transform_blocks(s, c, s.P[:n, :n], s.w_n33, s.w_W, False)
+    _attitude_covariance_to_world(s, c)
     for i in range(3):
         if (i < 2 and set_tilt) or (i == 2 and set_heading):
             for j in range(n):
                 s.P[i, j] = 0.0
                 s.P[j, i] = 0.0
             s.P[i, i] = tilt_var if i < 2 else heading_var
+    _attitude_covariance_from_world(s, c)
+
+
+@kernel
+def _attitude_covariance_to_world(s: StateRecord, c: CoefficientsRecord) -> None:
+    """P's δθ rows and columns in world axes (a change of coordinates, not a move of
+    the reference); leaves M (world → error frame) in w_m33 for the way back."""
+    _error_frame_from_world(s, c)
+    for i in range(3):
+        for j in range(3):
+            s.w_n33[i, j] = s.w_m33[j, i]  # Mᵀ: error frame → world
+    n = c.n_state
+    _transform_blocks(s, c, s.P[:n, :n], s.w_n33, s.w_W, False)
+
+
+@kernel
+def _attitude_covariance_from_world(s: StateRecord, c: CoefficientsRecord) -> None:
+    """Undo :func:`_attitude_covariance_to_world` (M still in w_m33)."""
+    n = c.n_state
     _transform_blocks(s, c, s.P[:n, :n], s.w_m33, s.w_W, False)
 
 
@@ -285,6 +301,7 @@ def _align(
     if not keep_heading:
         s.mag_state = 0  # the next magnetometer sample sets heading
     s.filters_primed = 0  # the low-passes start again with the next sample
+    s.t_reopened = -math.inf
 
 
 @kernel
@@ -1031,7 +1048,11 @@ def accel_update(
     if c.accel_max_disturbance_time > 0.0 and t - s.t_accel > c.accel_max_disturbance_time:
         # disturbed for too long: more likely the attitude is wrong than the
         # accelerometer, so tilt gets its initial uncertainty back
+        if c.divergence_window > 0.0 and t - s.t_reopened < c.divergence_window:
+            s.flags |= _DIVERGED  # again, soon: _check_health re-initialises
+            return
         _reopen_tilt(s, c)
+        s.t_reopened = t
         gate = 0.0
         s.flags |= _TILT_REOPENED
     s.w_q_before[:] = s.q
@@ -1408,6 +1429,8 @@ def step(
     """
     s.linear_accel[:] = linear_accel
     _step_sample(s, c, t, gyro, accel, mag)
+    if s.initialised:
+        _check_health(s, c, accel)  # (its Cholesky reads one triangle)
     # the structured products round the two triangles differently
     symmetrise(s.P[: c.n_state, : c.n_state])
 
@@ -1481,3 +1504,94 @@ def _step_sample(
         _zero_rate_update(s, c, gyro, dt)
     accel_update(s, c, t, accel, dt)
     mag_update(s, c, t, mag, dt)
+
+
+# --------------------------------------------------------------------------
+# Health
+# --------------------------------------------------------------------------
+
+# Beyond these the state is a numerical accident, not an estimate.
+_MAX_BIAS = 0.5  # rad/s per axis (29°/s: beyond any MEMS gyro's offset, calibrated or not)
+_MAX_ATTITUDE_VAR = 4.0 * math.pi**2  # rad², any δθ axis (heading is capped at π², below)
+_MAX_CONSIDERED_VAR = 1e6  # (m/s²)², (m/s³)², (m/s)²: ε, ḟ, v
+# Heading's σ never exceeds 180°: a wrapped normal that wide is as good as uniform,
+# and the linear model of a wider one means nothing (6-D, hours without a compass).
+_MAX_HEADING_VAR = math.pi**2
+_FULL_CHECK_EVERY = 64  # samples
+
+
+@kernel
+def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
+    """Heading's variance at most _MAX_HEADING_VAR: its row and column in world axes
+    scaled by f (P ← D P D, D = diag(1, 1, f) on δθ: a congruence, so P stays definite)."""
+    var = _heading_variance(s, c)
+    if not var > _MAX_HEADING_VAR:
+        return
+    f = math.sqrt(_MAX_HEADING_VAR / var)
+    _attitude_covariance_to_world(s, c)
+    for j in range(c.n_state):
+        s.P[2, j] *= f
+        s.P[j, 2] *= f
+    _attitude_covariance_from_world(s, c)
+
+
+@kernel
+def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
+    """Nominal finite and a unit quaternion, bias plausible, P positive definite
+    (Cholesky; P is symmetric by construction, symmetrise runs every step) with
+    every variance within its bound (NaN fails every test)."""
+    q_norm2 = s.q[0] ** 2 + s.q[1] ** 2 + s.q[2] ** 2 + s.q[3] ** 2
+    if not abs(q_norm2 - 1.0) < 1e-6:  # also NaN
+        return False
+    for i in range(3):
+        if not abs(s.b[i]) <= _MAX_BIAS:
+            return False
+    n = c.n_state
+    for i in range(n):
+        bound = _MAX_ATTITUDE_VAR if i < 3 else _MAX_BIAS**2 if i < N_ERROR else _MAX_CONSIDERED_VAR
+        if not 0.0 <= s.P[i, i] <= bound:
+            return False
+    # The estimate's own 6×6 every step; the whole, with the considered states, every
+    # _FULL_CHECK_EVERY samples: its Cholesky would add a fifth to a step. (ε and ḟ
+    # are exactly zero until the low-pass holds a sample: semi-definite then.)
+    m = n if s.filters_primed and s.samples % _FULL_CHECK_EVERY == 0 else N_ERROR
+    return cholesky_into(s.P[:m, :m], s.w_T[:m, :m])
+
+
+@kernel
+def _reinitialise(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> None:
+    """Start again from this sample's accelerometer, keeping heading if it is finite
+    (what else knows it, in 6-D?); the bias starts again from its prior, as it may
+    be what went wrong. Without a usable accelerometer: uninitialised, and the
+    next usable sample initialises."""
+    keep_heading = _vector_is_finite(s.q[1:]) and math.isfinite(s.q[0])
+    if keep_heading:
+        so3.quat_normalize_into(s.q)
+    else:
+        s.q[0] = 1.0
+        for i in range(1, 4):
+            s.q[i] = 0.0
+    if _accel_usable_for_alignment(c, accel):
+        _align(s, c, accel, keep_heading, False)
+        s.t_accel = s.t
+    else:
+        s.w_u3[0] = 0.0  # a placeholder attitude with a valid covariance
+        s.w_u3[1] = 0.0
+        s.w_u3[2] = -c.gravity
+        _align(s, c, s.w_u3, keep_heading, False)
+        s.initialised = 0
+        s.flags |= _NOT_INITIALISED
+
+
+@kernel
+def _check_health(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> None:
+    """After every step: re-initialise a diverged or numerically broken filter."""
+    if s.flags & _DIVERGED:
+        _reinitialise(s, c, accel)
+        s.divergence_resets += 1
+        return
+    _cap_heading_variance(s, c)
+    if not _state_is_healthy(s, c):
+        _reinitialise(s, c, accel)
+        s.flags |= _UNHEALTHY_RESET
+        s.unhealthy_resets += 1

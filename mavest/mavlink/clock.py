@@ -71,6 +71,15 @@ class StreamClock:
         self._candidate_count = 0
 
     @property
+    def pending(self) -> int:
+        """Samples so far on an unconfirmed new timeline (0: none)."""
+        return self._candidate_count if self._candidate is not None else 0
+
+    def time_of(self, ticks: int, tick: float) -> float:
+        """Seconds since boot of a timestamp on the current timeline (wraps undone)."""
+        return (ticks + self._offset) * tick
+
+    @property
     def period(self) -> float:
         """The stream's typical sample period (s), 0 until two samples arrived."""
         return self._period

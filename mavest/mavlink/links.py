@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import logging
+import os
 import socket
 import time
 from collections.abc import Callable
@@ -29,10 +31,19 @@ log = logging.getLogger("mavest")
 Receiver = Callable[["Link", bytes, Any], None]
 
 UDP_PEER_TIMEOUT = 30.0  # s: a udpin peer silent this long gets no more replies
+TCP_MIN_BACKOFF = 0.25  # s: the first wait before connecting again
 
 
 class LinkError(Exception):
     """A connection that cannot be opened (bad string, port taken, no device)."""
+
+
+def _cannot_listen(endpoint: Endpoint, error: OSError) -> LinkError:
+    # asyncio's server words the error its own way ("error while attempting to bind…")
+    reason = os.strerror(error.errno) if error.errno else str(error)
+    if error.errno == errno.EADDRINUSE:
+        reason += f" (another program has port {endpoint.port}: a ground station, another mavest?)"
+    return LinkError(f"cannot listen on {endpoint}: {reason}")
 
 
 @dataclass(frozen=True)
@@ -124,7 +135,8 @@ class UdpLink(Link):
     def __init__(self, endpoint: Endpoint) -> None:
         super().__init__(endpoint)
         self._transport: asyncio.DatagramTransport | None = None
-        self._peers: dict[Any, float] = {}
+        self._peers: dict[Any, float] = {}  # udpin: who to reply to → when last heard
+        self._silent: dict[Any, float] = {}  # peers dropped for silence → when last heard
         self._warned_unreachable = False
 
     async def start(self, receiver: Receiver) -> None:
@@ -141,6 +153,8 @@ class UdpLink(Link):
                     lambda: _DatagramProtocol(self), remote_addr=address
                 )
         except OSError as error:
+            if self.endpoint.kind == "udpin":
+                raise _cannot_listen(self.endpoint, error) from None
             raise LinkError(f"cannot open {self.endpoint}: {error.strerror or error}") from None
         self._transport = transport  # type: ignore[assignment]
         sock = transport.get_extra_info("socket")
@@ -150,8 +164,24 @@ class UdpLink(Link):
 
     def _on_datagram(self, data: bytes, addr: Any) -> None:
         if self.endpoint.kind == "udpin":
-            self._peers[addr] = time.monotonic()
+            now = time.monotonic()
+            if addr not in self._peers:
+                self._on_new_peer(addr, now)
+            self._peers[addr] = now
         self._deliver(data, addr)
+
+    def _on_new_peer(self, addr: Any, now: float) -> None:
+        who = _address(addr)
+        last_heard = self._silent.pop(addr, None)
+        if last_heard is None:
+            log.info("%s: hearing from %s", self.endpoint, who)
+        else:
+            log.info(
+                "%s: %s is back after %.0f s of silence; replying again",
+                self.endpoint,
+                who,
+                now - last_heard,
+            )
 
     def _on_error(self, exc: Exception) -> None:
         if not self._warned_unreachable:
@@ -169,6 +199,13 @@ class UdpLink(Link):
         for addr, seen in list(self._peers.items()):
             if now - seen > UDP_PEER_TIMEOUT:
                 del self._peers[addr]
+                self._silent[addr] = seen
+                log.warning(
+                    "%s: nothing from %s for %g s; no replies to it until it sends again",
+                    self.endpoint,
+                    _address(addr),
+                    UDP_PEER_TIMEOUT,
+                )
                 continue
             transport.sendto(packet, addr)
 
@@ -177,8 +214,18 @@ class UdpLink(Link):
             self._transport.close()
 
 
+def _address(addr: Any) -> str:
+    return f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) and len(addr) >= 2 else str(addr)
+
+
 class TcpClientLink(Link):
-    """``tcp:HOST:PORT``: connects, and reconnects with back-off when the peer goes away."""
+    """``tcp:HOST:PORT``: connects, and reconnects with back-off when the peer goes away.
+
+    A connection that carried data is taken up again at once when it drops; each
+    attempt after that which fails (refused, or accepted and closed at once, as a
+    peer that is restarting does) waits twice as long as the one before, up to
+    ``max_backoff``.
+    """
 
     def __init__(self, endpoint: Endpoint, max_backoff: float = 5.0) -> None:
         super().__init__(endpoint)
@@ -191,37 +238,50 @@ class TcpClientLink(Link):
         self._task = asyncio.create_task(self._run(), name=f"link {self.endpoint}")
 
     async def _run(self) -> None:
-        backoff = 0.25
-        said_waiting = False
+        backoff = TCP_MIN_BACKOFF
+        failures = 0  # attempts in a row that brought no data
         while True:
             try:
                 reader, writer = await asyncio.open_connection(
                     self.endpoint.host, self.endpoint.port
                 )
             except OSError as error:
-                if not said_waiting:
+                failures += 1
+                if failures == 1:
                     log.warning(
-                        "%s: %s; retrying",
+                        "%s: %s; retrying with back-off (at most every %g s)",
                         self.endpoint,
                         error.strerror or error.__class__.__name__,
+                        self.max_backoff,
                     )
-                    said_waiting = True
+                log.debug("%s: attempt %d failed; next in %g s", self.endpoint, failures, backoff)
                 await asyncio.sleep(backoff)
                 backoff = min(2.0 * backoff, self.max_backoff)
                 continue
             log.info("%s: connected", self.endpoint)
-            said_waiting = False
-            backoff = 0.25
             self._writer = writer
             peer = writer.get_extra_info("peername")
+            received = False
             try:
                 while data := await reader.read(65536):
+                    received = True
                     self._deliver(data, peer)
             except OSError:
                 pass
             self._writer = None
             writer.close()
-            log.warning("%s: connection lost; reconnecting", self.endpoint)
+            if received:
+                failures, backoff = 0, TCP_MIN_BACKOFF
+                log.warning("%s: connection lost; reconnecting", self.endpoint)
+                continue
+            failures += 1
+            if failures == 1:
+                log.warning(
+                    "%s: the peer closed the connection at once; retrying with back-off",
+                    self.endpoint,
+                )
+            await asyncio.sleep(backoff)
+            backoff = min(2.0 * backoff, self.max_backoff)
 
     def send(self, packet: bytes) -> None:
         writer = self._writer
@@ -251,9 +311,7 @@ class TcpServerLink(Link):
                 self._serve, self.endpoint.host, self.endpoint.port
             )
         except OSError as error:
-            raise LinkError(
-                f"cannot listen on {self.endpoint}: {error.strerror or error}"
-            ) from None
+            raise _cannot_listen(self.endpoint, error) from None
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")

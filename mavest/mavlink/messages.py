@@ -61,6 +61,15 @@ _HIGHRES_MAG_BITS = (
 )
 
 
+# The range of the integer field types IMU values come in: a value at either end is a
+# reading the sensor (or the firmware's conversion) clipped, not a measurement.
+_INTEGER_LIMITS = {
+    "int8_t": (-(1 << 7), (1 << 7) - 1),
+    "int16_t": (-(1 << 15), (1 << 15) - 1),
+    "int32_t": (-(1 << 31), (1 << 31) - 1),
+}
+
+
 class UnitError(LookupError):
     """A message definition whose unit mavest has no conversion for."""
 
@@ -74,6 +83,8 @@ class ImuFormat(NamedTuple):
     accel_scale: float
     gyro_scale: float
     mag_scale: float
+    # (lowest, highest) of the gyro and accelerometer fields' integer type; None for floats
+    limits: tuple[int, int] | None
 
 
 def _format_of(message_class: type[MAVLinkMessage]) -> ImuFormat:
@@ -88,6 +99,9 @@ def _format_of(message_class: type[MAVLinkMessage]) -> ImuFormat:
 
     for axis in "yz":  # the three axes of a sensor share a unit
         assert scale(f"{axis}acc") == scale("xacc") and scale(f"{axis}gyro") == scale("xgyro")
+    types = dict(zip(message_class.fieldnames, message_class.fieldtypes, strict=True))
+    inertial_types = {types[f"{axis}{sensor}"] for axis in "xyz" for sensor in ("acc", "gyro")}
+    assert len(inertial_types) == 1  # one type for all six (int16_t, or float)
     return ImuFormat(
         message_class.msgname,
         time_field,
@@ -95,6 +109,7 @@ def _format_of(message_class: type[MAVLinkMessage]) -> ImuFormat:
         scale("xacc"),
         scale("xgyro"),
         scale("xmag"),
+        _INTEGER_LIMITS.get(inertial_types.pop()),
     )
 
 
@@ -125,6 +140,8 @@ class ImuSample(NamedTuple):
     gyro: tuple[float, float, float]  # rad/s, FRD
     accel: tuple[float, float, float]  # m/s², specific force, FRD
     mag: tuple[float, float, float] | None  # µT, None when not sent
+    # a gyro or accelerometer axis at its integer field's limit: clipped, not measured
+    saturated: bool = False
 
 
 def decode_imu(message: Any) -> ImuSample | None:
@@ -147,13 +164,20 @@ def decode_imu(message: Any) -> ImuSample | None:
     else:
         instance = _INSTANCE_BY_NAME[name]
     a, g, m = fmt.accel_scale, fmt.gyro_scale, fmt.mag_scale
+    gx, gy, gz = message.xgyro, message.ygyro, message.zgyro
+    ax, ay, az = message.xacc, message.yacc, message.zacc
+    limits = fmt.limits
+    saturated = limits is not None and (
+        min(gx, gy, gz, ax, ay, az) <= limits[0] or max(gx, gy, gz, ax, ay, az) >= limits[1]
+    )
     return ImuSample(
         StreamKey(header.srcSystem, header.srcComponent, name, instance),
         getattr(message, fmt.time_field),
         fmt.time_scale,
-        (message.xgyro * g, message.ygyro * g, message.zgyro * g),
-        (message.xacc * a, message.yacc * a, message.zacc * a),
+        (gx * g, gy * g, gz * g),
+        (ax * a, ay * a, az * a),
         (message.xmag * m, message.ymag * m, message.zmag * m) if mag_fresh else None,
+        saturated,
     )
 
 

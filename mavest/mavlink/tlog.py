@@ -10,6 +10,10 @@ output tlog can hold every input record.
 
 from __future__ import annotations
 
+import bisect
+import contextlib
+import logging
+import mmap
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -39,7 +43,7 @@ def message_ids(names: tuple[str, ...] | list[str] | set[str]) -> frozenset[int]
     return frozenset(getattr(mavlink2, f"MAVLINK_MSG_ID_{name}") for name in names)
 
 
-def _packet_length(buffer: bytes | memoryview, start: int) -> int:
+def _packet_length(buffer: bytes | memoryview | mmap.mmap, start: int) -> int:
     """Length of the packet at ``start`` from its header, or 0 if no packet starts there."""
     stx = buffer[start]
     if stx == _STX_V2:
@@ -52,6 +56,17 @@ def _packet_length(buffer: bytes | memoryview, start: int) -> int:
             return -1
         return 8 + buffer[start + 1]
     return 0
+
+
+def _record_starts(data: bytes | mmap.mmap, position: int, last_us: int) -> bool:
+    """True at the end of the data, or where a record plausibly starts: a timestamp near
+    the previous one, then a MAVLink start byte."""
+    if position == len(data):
+        return True
+    if position + 9 > len(data) or data[position + 8] not in (_STX_V1, _STX_V2):
+        return False
+    (stamp,) = _TIMESTAMP.unpack_from(data, position)
+    return abs(stamp - last_us) <= _MAX_TIMESTAMP_JUMP_US
 
 
 @dataclass
@@ -78,7 +93,7 @@ class TlogReader:
     >>> for record in reader: ...  # doctest: +SKIP
     """
 
-    def __init__(self, data: bytes, wanted: frozenset[int] | None = None) -> None:
+    def __init__(self, data: bytes | mmap.mmap, wanted: frozenset[int] | None = None) -> None:
         self._data = data
         self._wanted = wanted
         self._mav = MAVLink(None)
@@ -88,12 +103,20 @@ class TlogReader:
 
     @classmethod
     def open(cls, path: str | Path, wanted: frozenset[int] | None = None) -> TlogReader:
-        """Read a whole file; a missing path, a directory or a non-tlog is a :class:`TlogError`."""
+        """Open a file; a missing path, a directory or a non-tlog is a :class:`TlogError`.
+
+        The file is mapped, not read: memory stays flat however long the log (pages
+        behind the reader are released as it goes), and opening is instant.
+        """
         path = Path(path)
         if path.is_dir():
             raise TlogError(f"{path} is a directory, not a tlog")
         try:
-            data = path.read_bytes()
+            with path.open("rb") as file:
+                try:
+                    data: bytes | mmap.mmap = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)
+                except (ValueError, OSError):  # empty, or not a regular file (a pipe)
+                    data = file.read()
         except FileNotFoundError:
             raise TlogError(f"{path}: no such file") from None
         except OSError as error:
@@ -113,21 +136,36 @@ class TlogReader:
         return len(self._data)
 
     def looks_like_tlog(self, probe: int = 4096) -> bool:
-        """True when a timestamped packet with a valid CRC starts within the first bytes."""
-        data = self._data[: probe + 300]
+        """True when a timestamped packet with a valid CRC starts within the first bytes.
+
+        A packet followed at once by another does not count: that is MAVLink without
+        timestamps (a raw capture), whose packets' tails would be read as timestamps.
+        In a tlog the next record starts with a timestamp, whose first byte stays 0
+        until the year 2540, never a start byte.
+        """
+        data = self._data[: probe + 600]  # room for two whole packets after the probe
         for start in range(min(probe, max(0, len(data) - 9))):
-            if data[start + 8] not in (_STX_V1, _STX_V2):
+            if not self._packet_at(data, start + 8):
                 continue
-            length = _packet_length(data, start + 8)
-            end = start + 8 + length
-            if length <= 0 or end > len(data):
-                continue
-            try:
-                self._mav.decode(bytearray(data[start + 8 : end]))
-            except Exception:
+            end = start + 8 + _packet_length(data, start + 8)
+            if end < len(data) and self._packet_at(data, end):
                 continue
             return True
         return False
+
+    def _packet_at(self, data: bytes, start: int) -> bool:
+        """True when a whole packet of a known message, CRC valid, starts at ``start``
+        (an id the dialect does not know has no CRC to check: noise passes it)."""
+        if start >= len(data) or data[start] not in (_STX_V1, _STX_V2):
+            return False
+        length = _packet_length(data, start)
+        if length <= 0 or start + length > len(data):
+            return False
+        try:
+            message = self._mav.decode(bytearray(data[start : start + length]))
+        except Exception:
+            return False
+        return not isinstance(message, mavlink2.MAVLink_unknown)
 
     def _resynchronise(self, start: int, last_us: int | None) -> int:
         """The next position after ``start`` where a plausible record begins."""
@@ -155,7 +193,10 @@ class TlogReader:
         position = self.position
         last_us: int | None = None
         stats = self.stats
+        released = 0  # the mapped file's pages before this are given back
         while position + 9 <= n:
+            if position - released > _RELEASE_BYTES and isinstance(data, mmap.mmap):
+                released = _release_pages(data, position - _RELEASE_BYTES // 2)
             length = _packet_length(data, position + 8)
             (stamp,) = _TIMESTAMP.unpack_from(data, position)
             plausible = last_us is None or abs(stamp - last_us) <= _MAX_TIMESTAMP_JUMP_US
@@ -166,14 +207,23 @@ class TlogReader:
                 continue
             end = position + 8 + length
             if end > n:
-                stats.truncated_bytes += n - position
-                position = n
-                break
+                # the last record cut off, or junk that looks like a record start
+                resumed = self._resynchronise(position, last_us)
+                if resumed >= n:
+                    stats.truncated_bytes += n - position
+                    position = n
+                    break
+                stats.skipped_bytes += resumed - position
+                position = resumed
+                continue
             packet = data[position + 8 : end]
             message = None
-            if wanted is None or message_id_of(packet) in wanted:
+            is_wanted = wanted is None or message_id_of(packet) in wanted
+            # An unwanted packet is checked too when no record follows it: junk that looks
+            # like a record start would otherwise swallow the real records its length spans.
+            if is_wanted or not _record_starts(data, end, stamp):
                 try:
-                    message = decode(bytearray(packet))
+                    decoded = decode(bytearray(packet))
                 except Exception:  # pymavlink's MAVError, or struct's on a short payload
                     # a damaged packet may hide the start of the next record: resync
                     stats.bad_crc += 1
@@ -181,6 +231,16 @@ class TlogReader:
                     stats.skipped_bytes += resumed - position
                     position = resumed
                     continue
+                if isinstance(decoded, mavlink2.MAVLink_unknown) and not is_wanted:
+                    # an id this dialect does not know has no CRC to check, and nothing
+                    # after it lines up: take it for junk
+                    stats.bad_crc += 1
+                    resumed = self._resynchronise(position, last_us)
+                    stats.skipped_bytes += resumed - position
+                    position = resumed
+                    continue
+                if is_wanted:
+                    message = decoded
             stats.records += 1
             last_us = stamp
             position = end
@@ -189,25 +249,96 @@ class TlogReader:
         self.position = position
 
 
+# A mapped tlog's pages behind the reader are released in steps of this many bytes
+# (they are the file's: read again from it, should a resynchronisation look back).
+_RELEASE_BYTES = 32 << 20
+
+
+def _release_pages(data: mmap.mmap, end: int) -> int:
+    """Give back the mapping's pages before ``end``; the page boundary released to."""
+    boundary = end - end % mmap.PAGESIZE
+    if boundary > 0 and hasattr(mmap, "MADV_DONTNEED"):
+        data.madvise(mmap.MADV_DONTNEED, 0, boundary)
+    return boundary
+
+
+_log = logging.getLogger("mavest")
+
+
 class TlogWriter:
-    """Appends records to a tlog; every record is complete on disk after :meth:`flush`."""
+    """Appends records to a tlog; every record is complete on disk after :meth:`flush`.
+
+    Records reach the file only whole (buffered here, written in one piece), so the
+    file always ends at a record boundary: a process killed between writes leaves a
+    valid tlog. A write that fails (disk full, quota, I/O error) is reported once in
+    the log, the file is cut back to its last whole record and the writer stops
+    writing; the caller goes on (:attr:`error` says what happened).
+    """
+
+    BUFFER_BYTES = 64 * 1024  # pending records are written once this much accumulates
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         try:
-            self._file: IO[bytes] = self.path.open("wb")
+            # unbuffered: the buffering is ours, so that we know what reached the file
+            self._file: IO[bytes] = self.path.open("wb", buffering=0)
         except OSError as error:
             raise TlogError(f"cannot write {self.path}: {error.strerror}") from None
-        self.records = 0
+        self.records = 0  # records written or pending (after a failure: those on disk)
+        self.error: str | None = None  # why writing stopped, if it did
+        self._pending = bytearray()
+        self._pending_ends: list[int] = []  # where each pending record ends in _pending
+        self._on_disk = 0  # bytes of whole records in the file
 
     def write(self, timestamp_us: int, packet: bytes) -> None:
-        self._file.write(_TIMESTAMP.pack(timestamp_us) + packet)
+        if self.error is not None:
+            return
+        self._pending += _TIMESTAMP.pack(timestamp_us)
+        self._pending += packet
+        self._pending_ends.append(len(self._pending))
         self.records += 1
+        if len(self._pending) >= self.BUFFER_BYTES:
+            self._write_pending()
+
+    def _write_pending(self) -> None:
+        done = 0
+        try:
+            with memoryview(self._pending) as data:
+                while done < len(data):
+                    done += self._file.write(data[done:]) or 0
+        except OSError as error:
+            self._stop(error, done)
+            return
+        self._on_disk += done
+        self._pending.clear()
+        self._pending_ends.clear()
+
+    def _stop(self, error: OSError, done: int) -> None:
+        """Cut the file back to its last whole record and write no more."""
+        whole = bisect.bisect_right(self._pending_ends, done)
+        self.records -= len(self._pending_ends) - whole
+        keep = self._on_disk + (self._pending_ends[whole - 1] if whole else 0)
+        with contextlib.suppress(OSError):  # a device (/dev/full) cannot be truncated
+            self._file.truncate(keep)
+        with contextlib.suppress(OSError):
+            self._file.close()
+        self._pending = bytearray()
+        self._pending_ends = []
+        self.error = f"cannot write {self.path}: {error.strerror or error}"
+        _log.error(
+            "%s; the tlog stops here with its first %d records, whole (estimating on)",
+            self.error,
+            self.records,
+        )
 
     def flush(self) -> None:
-        self._file.flush()
+        if self.error is None and self._pending:
+            self._write_pending()
 
     def close(self) -> None:
+        if self._file.closed:
+            return
+        self.flush()
         if not self._file.closed:
             self._file.close()
 

@@ -25,7 +25,7 @@ from mavest.estimator import Estimator
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.online import EulerComparison
 from mavest.mavlink.clock import ClockEvent, StreamClock
-from mavest.mavlink.links import Link
+from mavest.mavlink.links import Link, UdpLink
 from mavest.mavlink.messages import (
     IMU_MESSAGES,
     Encoder,
@@ -85,9 +85,13 @@ class StreamStats:
     duplicates: int = 0
     out_of_order: int = 0
     off_timeline: int = 0  # timestamps far off the stream's timeline, not confirmed
-    rejected: int = 0  # values not finite or beyond any sensor's range
+    rejected: int = 0  # values not finite, saturated, beyond any sensor's range, no accel
+    rejected_reasons: dict[str, int] = field(default_factory=dict)  # of those, why
     gaps: int = 0
     realigned: int = 0
+    tilt_reopened: int = 0  # the accelerometer disturbed too long: tilt uncertain again
+    diverged: int = 0  # contradicted again soon after that: re-initialised
+    unhealthy: int = 0  # the state failed its health check: re-initialised
     reboots: int = 0
     wraps: int = 0
     mag_samples: int = 0  # samples that carried a usable magnetometer reading
@@ -116,6 +120,8 @@ class Stream:
     vs_autopilot: EulerComparison = field(default_factory=EulerComparison)
     vs_truth: EulerComparison = field(default_factory=EulerComparison)
     heading_source_reported: bool = False
+    # samples off the stream's timeline, held until the clock confirms or drops theirs
+    held: list[ImuSample] = field(default_factory=list)
 
     @property
     def rate(self) -> float:
@@ -171,6 +177,7 @@ class Pipeline:
         self.sent = 0
         self._record_us = 0  # timestamp for records written now
         self._not_followed: set[StreamKey] = set()
+        self.ignored_imu: dict[int, int] = {}  # IMU messages from systems not followed
 
     # ---------------------------------------------------------------- input
 
@@ -197,6 +204,11 @@ class Pipeline:
         except Exception:  # pymavlink raises on some malformed input even when robust
             self.bad_packets += 1
             return
+        if parser.buf_len() and isinstance(link, UdpLink):
+            # A packet never spans datagrams: what is left is the start of one cut off
+            # (or noise). Kept, it would swallow the packets of the next datagram.
+            _discard_partial_packet(parser)
+            self.bad_packets += 1
         # packets the verifier refused, among the BAD_DATA below
         refused = verifier.dropped - dropped_before if verifier is not None else 0
         for message in messages:
@@ -288,6 +300,7 @@ class Pipeline:
     def _on_imu(self, message: Any, system: int, component: int) -> None:
         start = time.perf_counter()
         if not self._follows(system):
+            self._ignore_imu(system)
             return
         sample = decode_imu(message)
         if sample is None:  # HIGHRES_IMU without fresh gyro and accelerometer
@@ -301,6 +314,20 @@ class Pipeline:
                 self._not_followed.add(sample.stream)
                 return
         self._estimate(stream, sample, start)
+
+    def _ignore_imu(self, system: int) -> None:
+        """Count an IMU message from a system not followed; say so once per system."""
+        count = self.ignored_imu.get(system, 0)
+        self.ignored_imu[system] = count + 1
+        if count == 0:
+            wanted = self.config.input.system
+            log.info(
+                "ignoring IMU messages from system %d (%s)",
+                system,
+                f"following system {wanted} only"
+                if wanted
+                else "in input.ignore_systems: ground stations by default",
+            )
 
     def _new_stream(self, key: StreamKey) -> Stream | None:
         """A stream seen for the first time: follow it if the configuration selects it."""
@@ -344,10 +371,17 @@ class Pipeline:
         stats = stream.stats
         stats.received += 1
         gyro, accel = sample.gyro, sample.accel
-        if not _plausible(gyro, MAX_GYRO) or not _plausible(accel, MAX_ACCEL):
-            stats.rejected += 1
+        # before the clock: a rejected sample's timestamp is not believed either
+        if (
+            not _plausible(gyro, MAX_GYRO)
+            or not _plausible(accel, MAX_ACCEL)
+            or sample.saturated
+            or accel == (0.0, 0.0, 0.0)
+        ):
+            _reject(stream, _rejection_reason(sample))
             return
-        reading = stream.clock.read(sample.ticks, sample.tick)
+        clock = stream.clock
+        reading = clock.read(sample.ticks, sample.tick)
         event = reading.event
         if not event.used:
             if event is ClockEvent.DUPLICATE:
@@ -356,7 +390,16 @@ class Pipeline:
                 stats.out_of_order += 1
             else:
                 stats.off_timeline += 1
+                # perhaps the start of a new timeline (a reboot, a jump): kept until the
+                # clock decides, so that a confirmed one loses none of its samples
+                if clock.pending == 1:
+                    stream.held.clear()
+                stream.held.append(sample)
             return
+        held, stream.held = stream.held, []
+        if held and not (event is ClockEvent.REBOOT or reading.dt > clock.max_jump):
+            held = []  # single stamps off the timeline, and the timeline went on: bad ones
+        stats.off_timeline -= len(held)
         t = reading.t
         if event is ClockEvent.REBOOT:
             stats.reboots += 1
@@ -375,6 +418,14 @@ class Pipeline:
             log.info("%s: the 32-bit timestamp wrapped", stream.key)
         elif event is ClockEvent.GAP:
             stats.gaps += 1
+        for early in held:  # the new timeline's first samples, in the order they came
+            self._step(stream, early, clock.time_of(early.ticks, early.tick), start)
+        self._step(stream, sample, t, start)
+
+    def _step(self, stream: Stream, sample: ImuSample, t: float, start: float) -> None:
+        """Estimate from a sample the clock has placed at ``t``; answer and record."""
+        stats = stream.stats
+        gyro, accel = sample.gyro, sample.accel
         vehicle = self.vehicles[(sample.stream.system, sample.stream.component)]
         mag = _usable_mag(sample.mag)
         linear_accel = self._gps_acceleration(stream, vehicle, t)
@@ -384,7 +435,7 @@ class Pipeline:
         estimate = stream.estimator.update(t, gyro, accel, mag, linear_accel)
         flags = estimate.flags
         if flags & StepFlags.SKIPPED:
-            stats.rejected += 1
+            _reject(stream, "skipped by the estimator: " + ", ".join(StepFlags.describe(flags)))
             return
         if flags & StepFlags.ACCEL_AIDED:
             stats.gps_aided += 1
@@ -392,7 +443,10 @@ class Pipeline:
             stats.airspeed_aided += 1
         if flags & StepFlags.GAP_REALIGNED:
             stats.realigned += 1
-            log.warning("%s: no samples for %.2f s: attitude re-aligned", stream.key, reading.dt)
+            gap = t - (stats.last_t if stats.last_t is not None else t)
+            log.warning("%s: no samples for %.2f s: attitude re-aligned", stream.key, gap)
+        if flags & _HEALTH_EVENTS:
+            _report_health(stream, flags, t)
         stats.estimated += 1
         if stats.first_t is None:
             stats.first_t = t
@@ -583,6 +637,34 @@ def _usable_mag(mag: tuple[float, float, float] | None) -> tuple[float, float, f
     return mag
 
 
+_HEALTH_EVENTS = StepFlags.TILT_REOPENED | StepFlags.DIVERGED | StepFlags.UNHEALTHY_RESET
+
+
+def _report_health(stream: Stream, flags: int, t: float) -> None:
+    """Count and say what the estimator's health checks did (rare: each is news)."""
+    stats = stream.stats
+    if flags & StepFlags.TILT_REOPENED:
+        stats.tilt_reopened += 1
+        log.info(
+            "%s: t=%.1f s: accelerometer disturbed for %g s: tilt uncertain again",
+            *(stream.key, t, stream.estimator.config.accel_max_disturbance_time),
+        )
+    if flags & StepFlags.DIVERGED:
+        stats.diverged += 1
+        log.warning(
+            "%s: t=%.1f s: diverged (the accelerometer contradicts the attitude again within "
+            "%g s of reopening tilt): re-initialised from this sample",
+            *(stream.key, t, stream.estimator.config.divergence_window),
+        )
+    if flags & StepFlags.UNHEALTHY_RESET:
+        stats.unhealthy += 1
+        log.warning(
+            "%s: t=%.1f s: the filter's state failed its health check (not finite, covariance "
+            "not positive definite or out of bounds): re-initialised from this sample",
+            *(stream.key, t),
+        )
+
+
 def _report_heading(stream: Stream, flags: int) -> None:
     """Say once where heading comes from, and when the magnetometer's role changes."""
     stats = stream.stats
@@ -600,6 +682,39 @@ def _report_heading(stream: Stream, flags: int) -> None:
         log.info("%s: magnetometer rejected too long: trusting it again", stream.key)
     if flags & StepFlags.MAG_REFERENCE_CHANGED:
         log.info("%s: a steady new magnetic field became the reference", stream.key)
+
+
+def _discard_partial_packet(parser: Any) -> None:
+    """Empty a pymavlink parser's buffer, as it is when it starts (it has no method for it)."""
+    parser.buf = bytearray()
+    parser.buf_index = 0
+    parser.expected_length = mavlink2.HEADER_LEN_V1 + 2
+
+
+def _rejection_reason(sample: ImuSample) -> str:
+    """Why a sample is not one to estimate from (for one that is not)."""
+    values = (*sample.gyro, *sample.accel)
+    if not all(math.isfinite(v) for v in values):
+        return "a value not finite (NaN or infinity)"
+    if sample.saturated:
+        return "saturated: a gyro or accelerometer axis at its integer field's limit"
+    if sample.accel == (0.0, 0.0, 0.0):
+        # no real accelerometer reads exactly nothing on three axes (noise alone moves
+        # it): the message is empty, e.g. ArduPilot's SCALED_IMU3 without a third IMU
+        return "accelerometer all zero: no sensor data"
+    return "beyond any sensor's range"
+
+
+def _reject(stream: Stream, reason: str) -> None:
+    """Count a rejected sample by its reason; the first of each reason is said in the log."""
+    stats = stream.stats
+    stats.rejected += 1
+    count = stats.rejected_reasons.get(reason, 0)
+    stats.rejected_reasons[reason] = count + 1
+    if count == 0:
+        log.warning(
+            "%s: sample rejected, %s (all such are counted as rejected)", stream.key, reason
+        )
 
 
 def _plausible(v: tuple[float, float, float], limit: float) -> bool:

@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 
 MAVEST = [sys.executable, "-m", "mavest.cli"]
 READY_LINE = "mavest: listening on"
@@ -34,9 +35,14 @@ class ServiceProcess:
         self.log: list[str] = []
         self._ready = threading.Event()
         threading.Thread(target=self._read_log, daemon=True).start()
-        if not self._ready.wait(start_timeout):  # a cold numba cache compiles first
-            self.process.kill()
-            raise RuntimeError("mavest run did not start: " + "".join(self.log))
+        deadline = time.monotonic() + start_timeout  # a cold numba cache compiles first
+        while not self._ready.wait(0.1):
+            # a process that ended (a mistake, a crash) is not waited for until the deadline
+            if self.process.poll() is not None or time.monotonic() > deadline:
+                self.process.kill()
+                self.process.wait()
+                time.sleep(0.1)  # its last lines, read by the thread
+                raise RuntimeError("mavest run did not start: " + "".join(self.log))
 
     def _read_log(self) -> None:
         assert self.process.stderr is not None

@@ -25,6 +25,7 @@ import logging
 import math
 import time
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -181,15 +182,17 @@ def _magnetometer(q_true: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 
-def write_flight_tlog(
-    path: str | Path,
+def flight_records(
     seconds: float,
     rate: float,
     autopilot: Autopilot = AUTOPILOTS["ardupilot"],
     seed: int = 1,
     errors: ImuErrors | None = None,
-) -> str:
-    """Write a simulated flight to ``path``; return a line describing it."""
+    described: list[str] | None = None,
+) -> Iterator[tuple[int, bytes]]:
+    """A simulated flight's tlog records, (timestamp µs, packet), generated 10 s at a
+    time (an hour at 1 kHz never sits in memory); ``described`` gets a line saying
+    what was generated once the last record is out."""
     model = FlightModel(rate, seed)
     imu = NoisyImu(errors, rate, seed)
     encoder = VehicleEncoder(autopilot)
@@ -200,45 +203,61 @@ def write_flight_tlog(
     next_gps = 0.0
     gps_noise = np.random.default_rng([seed, GPS_NOISE_STREAM])
     samples = 0
+    yield TLOG_EPOCH_US, encoder.declination()
+    while samples < total:
+        flight = model.advance(min(chunk, total - samples))
+        gyro, accel = imu.measure(flight.gyro, flight.accel)
+        euler = so3.euler_zyx_from_quats(flight.q_true)
+        mag = _magnetometer(flight.q_true)
+        for i in range(len(flight)):
+            t = float(flight.t[i])
+            stamp = TLOG_EPOCH_US + round(t * 1e6)
+            if t >= next_heartbeat:
+                yield stamp, encoder.heartbeat()
+                next_heartbeat += 1.0
+            yield stamp, encoder.imu(t + BOOT_OFFSET, gyro[i], accel[i], mag[i])
+            yield (
+                stamp,
+                encoder.simstate(
+                    euler[i],
+                    flight.accel[i],
+                    flight.gyro[i],
+                    flight.latitude[i],
+                    flight.longitude[i],
+                ),
+            )
+            if t >= next_hud:
+                yield stamp, encoder.vfr_hud(flight, i, euler[i, 2])
+                next_hud += HUD_PERIOD
+            if t >= next_gps:
+                velocity = flight.velocity[i] + gps_noise.normal(0.0, GPS_VELOCITY_SIGMA, 3)
+                for packet in encoder.gps(t + BOOT_OFFSET, flight, i, velocity):
+                    yield stamp, packet
+                next_gps += GPS_PERIOD
+        samples += len(flight)
+    if described is not None:
+        described.append(
+            f"{samples} {autopilot.imu_message} at {rate:g} Hz over {seconds:g} s, with "
+            f"SIMSTATE (truth) per sample, VFR_HUD at {1 / HUD_PERIOD:g} Hz and GPS at "
+            f"{1 / GPS_PERIOD:g} Hz; gyro bias "
+            f"{', '.join(f'{math.degrees(b):+.2f}' for b in imu.gyro_bias)} °/s"
+        )
+
+
+def write_flight_tlog(
+    path: str | Path,
+    seconds: float,
+    rate: float,
+    autopilot: Autopilot = AUTOPILOTS["ardupilot"],
+    seed: int = 1,
+    errors: ImuErrors | None = None,
+) -> str:
+    """Write a simulated flight to ``path``; return a line describing it."""
+    described: list[str] = []
     with TlogWriter(path) as tlog:
-        tlog.write(TLOG_EPOCH_US, encoder.declination())
-        while samples < total:
-            flight = model.advance(min(chunk, total - samples))
-            gyro, accel = imu.measure(flight.gyro, flight.accel)
-            euler = so3.euler_zyx_from_quats(flight.q_true)
-            mag = _magnetometer(flight.q_true)
-            for i in range(len(flight)):
-                t = float(flight.t[i])
-                stamp = TLOG_EPOCH_US + round(t * 1e6)
-                if t >= next_heartbeat:
-                    tlog.write(stamp, encoder.heartbeat())
-                    next_heartbeat += 1.0
-                tlog.write(stamp, encoder.imu(t + BOOT_OFFSET, gyro[i], accel[i], mag[i]))
-                tlog.write(
-                    stamp,
-                    encoder.simstate(
-                        euler[i],
-                        flight.accel[i],
-                        flight.gyro[i],
-                        flight.latitude[i],
-                        flight.longitude[i],
-                    ),
-                )
-                if t >= next_hud:
-                    tlog.write(stamp, encoder.vfr_hud(flight, i, euler[i, 2]))
-                    next_hud += HUD_PERIOD
-                if t >= next_gps:
-                    velocity = flight.velocity[i] + gps_noise.normal(0.0, GPS_VELOCITY_SIGMA, 3)
-                    for packet in encoder.gps(t + BOOT_OFFSET, flight, i, velocity):
-                        tlog.write(stamp, packet)
-                    next_gps += GPS_PERIOD
-            samples += len(flight)
-    return (
-        f"wrote {path}: {samples} {autopilot.imu_message} at {rate:g} Hz over {seconds:g} s, "
-        f"with SIMSTATE (truth) per sample, VFR_HUD at {1 / HUD_PERIOD:g} Hz and GPS at "
-        f"{1 / GPS_PERIOD:g} Hz; gyro bias "
-        f"{', '.join(f'{math.degrees(b):+.2f}' for b in imu.gyro_bias)} °/s"
-    )
+        for stamp, packet in flight_records(seconds, rate, autopilot, seed, errors, described):
+            tlog.write(stamp, packet)
+    return f"wrote {path}: {described[0]}"
 
 
 # --------------------------------------------------------------------------

@@ -58,6 +58,9 @@ def stream_layout(root: str) -> rrb.Horizontal:
             name="raw IMU",
         ),
         _series(f"{root}/timing", "processing time per sample (µs)"),
+        rrb.TextLogView(
+            origin=f"{root}/events", name="filter events: tilt reopened, re-initialised"
+        ),
         active_tab=0,
     )
     return rrb.Horizontal(

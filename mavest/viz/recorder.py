@@ -103,20 +103,64 @@ _FIELDS = 14
 _BLOCK = 64
 
 
+# The filter's health events (StepFlags): level and line in the recording's event log.
+_EVENTS = (
+    (StepFlags.TILT_REOPENED, "INFO", "accelerometer disturbed too long: tilt uncertain again"),
+    (StepFlags.DIVERGED, "WARN", "diverged (contradicted again soon after): re-initialised"),
+    (StepFlags.UNHEALTHY_RESET, "WARN", "state failed its health check: re-initialised"),
+)
+_EVENT_BITS = StepFlags.TILT_REOPENED | StepFlags.DIVERGED | StepFlags.UNHEALTHY_RESET
+
+
+class _Slots:
+    """Which samples of a series start a ``slow_rate`` slot and a ``pose_rate`` slot.
+
+    A slot is floor(t / period); a sample starts one when its own differs from the
+    previous sample's: at most one sample per slot, the first in it, keeping the original
+    samples (a decimation that does not resample). The caller tests ``since <= t < until``
+    inline (inside both current slots: most samples, and no call) and calls ``advance``
+    only otherwise.
+    """
+
+    __slots__ = ("pose", "pose_period", "since", "slow", "slow_period", "until")
+
+    def __init__(self, slow_period: float, pose_period: float) -> None:
+        self.slow_period = slow_period
+        self.pose_period = pose_period
+        # NaN before the first sample: it differs from every slot, so the first sample
+        # starts both; an empty interval sends it to ``advance``
+        self.slow = self.pose = math.nan
+        self.since, self.until = math.inf, -math.inf
+
+    def advance(self, t: float) -> tuple[bool, bool]:
+        """Whether the sample at t starts a slow slot, a pose slot; the slots become its."""
+        slow = (t / self.slow_period) // 1.0  # floor, and NaN (no error) if not finite
+        pose = (t / self.pose_period) // 1.0
+        starts = (slow != self.slow, pose != self.pose)
+        self.slow, self.pose = slow, pose
+        since = max(slow * self.slow_period, pose * self.pose_period)
+        until = min((slow + 1.0) * self.slow_period, (pose + 1.0) * self.pose_period)
+        # Kept inside by far more than the division's rounding (a few ulp of t): a sample
+        # within the margin of a boundary calls ``advance``, which decides by division.
+        margin = 1e-12 * max(abs(since), abs(until))
+        self.since, self.until = since + margin, until - margin
+        return starts
+
+
 @dataclass
 class _References:
     """One reference's attitudes (the autopilot's, the truth) since the last batch: only
     those that start a slow_rate or a pose_rate slot, the only ones shown."""
 
+    slots: _Slots
     # (t, receive s, roll, pitch, yaw, starts a slow slot, starts a pose slot)
     rows: list[tuple[float, ...]] = field(default_factory=list)
-    slow_slot: float = math.nan  # see _StreamBuffer
-    pose_slot: float = math.nan
 
 
 @dataclass
 class _StreamBuffer:
     root: str
+    slots: _Slots  # of our estimates
     rows: list[tuple[float, ...]] = field(default_factory=list)  # < _BLOCK rows, as tuples
     blocks: list[np.ndarray] = field(default_factory=list)  # the batch's rows, packed
     packed: int = 0  # rows in blocks
@@ -125,12 +169,6 @@ class _StreamBuffer:
     # others are never shown, so their estimates are not kept
     slow: list[tuple[int, Any]] = field(default_factory=list)
     poses: list[tuple[int, np.ndarray]] = field(default_factory=list)
-    # The current slots as floor(t / period). A sample starts a slot when its own differs
-    # from the previous sample's: at most one sample per slot, the first in it, keeping
-    # the original samples (a decimation that does not resample). NaN before the first
-    # sample: every comparison with it fails, so the first sample starts a slot.
-    slow_slot: float = math.nan
-    pose_slot: float = math.nan
     references: dict[str, _References] = field(default_factory=dict)  # by source
     # our last estimate already sent: the anchor for references just after a batch
     anchor: tuple[float, float, float, float] | None = None
@@ -144,7 +182,7 @@ class RerunRecorder:
         self,
         recording: rr.RecordingStream,
         batch_rows: int = 32768,  # a multiple of 64 (others are rounded up)
-        batch_seconds: float = 2.0,  # a live viewer wants less: see ``for_viewer``
+        batch_seconds: float = 2.0,  # of the machine's clock; see ``for_viewer``
         pose_rate: float = 50.0,
         slow_rate: float = 100.0,
     ) -> None:
@@ -161,15 +199,18 @@ class RerunRecorder:
 
     @classmethod
     def for_viewer(cls, recording: rr.RecordingStream, live: bool) -> RerunRecorder:
-        """Batches of 0.25 s for a live viewer (it should feel live), 2 s for a file only.
+        """Batches of 0.25 s for a live viewer (it should feel live); for a file only, of
+        32768 rows, whatever the time.
 
         A file's batches may be large: each costs ~8 ms (~30 ``send_columns`` calls, as
-        many chunks to encode) whatever its size, while a row waiting costs 112 bytes; a
-        replay (~6 k samples/s) sends ~12 k rows a batch, not 4096.
+        many chunks to encode) whatever its size, while a row waiting costs 112 bytes. No
+        clock for a file: ``mavest run`` flushes its outputs every second anyway, and a
+        replay's batches then do not depend on how fast the machine is (so that
+        ``tools/service_bench.py --instructions`` counts the same work under valgrind).
         """
         if live:
             return cls(recording, batch_rows=4096, batch_seconds=0.25)
-        return cls(recording, batch_rows=32768, batch_seconds=2.0)
+        return cls(recording, batch_rows=32768, batch_seconds=math.inf)
 
     # ------------------------------------------------------------ sink interface
 
@@ -181,12 +222,15 @@ class RerunRecorder:
     def _buffer(self, stream: Any) -> _StreamBuffer:
         buffer = self._streams.get(stream.key)
         if buffer is None:
-            buffer = _StreamBuffer(stream_root(stream.key))
+            buffer = _StreamBuffer(stream_root(stream.key), self._slots())
             self._streams[stream.key] = buffer
             self._log_static(buffer.root)
             for callback in self.on_new_stream:
                 callback(buffer.root)
         return buffer
+
+    def _slots(self) -> _Slots:
+        return _Slots(self.slow_period, self.pose_period)
 
     def on_estimate(
         self,
@@ -201,14 +245,13 @@ class RerunRecorder:
         buffer = self._last if stream.key is self._last_key else self._switch(stream)
         rows = buffer.rows
         t = estimate.t
-        slot = t / self.slow_period  # x // 1.0 is floor(x), and NaN (no error) if not finite
-        if not buffer.slow_slot <= slot < buffer.slow_slot + 1.0:
-            buffer.slow_slot = slot // 1.0
-            buffer.slow.append((buffer.packed + len(rows), estimate))
-        slot = t / self.pose_period
-        if not buffer.pose_slot <= slot < buffer.pose_slot + 1.0:
-            buffer.pose_slot = slot // 1.0
-            buffer.poses.append((buffer.packed + len(rows), estimate.q))
+        slots = buffer.slots
+        if not slots.since <= t < slots.until:
+            slow, pose = slots.advance(t)
+            if slow:
+                buffer.slow.append((buffer.packed + len(rows), estimate))
+            if pose:
+                buffer.poses.append((buffer.packed + len(rows), estimate.q))
         gyro, accel = sample.gyro, sample.accel
         rows.append(
             (
@@ -243,17 +286,12 @@ class RerunRecorder:
         buffer = self._last if stream.key is self._last_key else self._switch(stream)
         references = buffer.references.get(source)
         if references is None:
-            references = buffer.references[source] = _References()
-        slot = t / self.slow_period
-        slow = not references.slow_slot <= slot < references.slow_slot + 1.0
-        if slow:
-            references.slow_slot = slot // 1.0
-        slot = t / self.pose_period
-        pose = not references.pose_slot <= slot < references.pose_slot + 1.0
-        if pose:
-            references.pose_slot = slot // 1.0
-        if slow or pose:
-            references.rows.append((t, receive_us * 1e-6, *euler, slow, pose))
+            references = buffer.references[source] = _References(self._slots())
+        slots = references.slots
+        if not slots.since <= t < slots.until:
+            slow, pose = slots.advance(t)
+            if slow or pose:
+                references.rows.append((t, receive_us * 1e-6, *euler, slow, pose))
 
     # ------------------------------------------------------------ sending
 
@@ -378,6 +416,7 @@ class RerunRecorder:
             self._send(f"{root}/imu/gyro", index, np.degrees(data[:, _GYRO]))
             self._send(f"{root}/imu/accel", index, data[:, _ACCEL])
             self._send(f"{root}/timing/processing_us", index, 1e6 * data[:, _PROCESSING])
+            self._send_events(root, data)
             pose_rows, buffer.poses = buffer.poses, []
             posed = [row for row, _ in pose_rows]
             self._send_poses(buffer, "mavest", t[posed], np.array([q for _, q in pose_rows]))
@@ -436,6 +475,26 @@ class RerunRecorder:
             [np.add.reduceat(used, slow) / counts, np.add.reduceat(disturbed, slow) / counts]
         )
         self._send(f"{root}/accel", slow_index, fractions)
+
+    def _send_events(self, root: str, data: np.ndarray) -> None:
+        """What the filter's health checks did, as log lines at the samples they did it."""
+        flags = data[:, _FLAGS].astype(np.int64)
+        if not np.any(flags & _EVENT_BITS):
+            return
+        events = sorted(
+            (row, level, text)
+            for bit, level, text in _EVENTS
+            for row in np.flatnonzero(flags & bit)
+        )
+        rows = np.array([row for row, _, _ in events])
+        rr.send_columns(
+            f"{root}/events",
+            indexes=self._index(data[rows, _T], data[rows, _RX]),
+            columns=rr.TextLog.columns(
+                text=[text for _, _, text in events], level=[level for _, level, _ in events]
+            ),
+            recording=self.recording,
+        )
 
     def _send_differences(
         self,

@@ -7,11 +7,16 @@ starts the ``rerun`` binary shipped in the rerun-sdk wheel with ``--bind``
 (127.0.0.1 unless ``bind`` says otherwise) and streams to it over gRPC. A
 viewer that cannot start, or goes away later, is reported once; the estimator
 and the file go on.
+
+A disk that fills up is watched for: the .rrd is closed, with the footer that
+makes it a complete recording, while there is still room for that footer (see
+:data:`RRD_DISK_RESERVE_BYTES`), and estimation goes on without it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
 import shutil
@@ -33,6 +38,15 @@ log = logging.getLogger("mavest")
 VIEWER_MODES = ("spawn", "connect", "serve")
 DEFAULT_GRPC_PORT = 9876
 DEFAULT_WEB_PORT = 9090
+
+# Free space an .rrd's disk keeps: below it the recording is closed while its footer
+# (a manifest of every chunk, written on close: about 2 % of the file) still fits.
+# A write that fails instead leaves a file without a footer, which `rerun rrd verify`
+# rejects, and rerun-sdk 0.41's file writer, once failed, can hang the process when
+# the recording is dropped or at exit; so it is not left to fail.
+RRD_DISK_RESERVE_BYTES = 1 << 20
+RRD_FOOTER_SHARE = 0.05  # of the file's size so far, on top of the reserve
+# …and twice the most the file grew between two checks (the next batch must fit too)
 
 
 class ViewerError(Exception):
@@ -99,6 +113,12 @@ class Viewer:
         self.url: str | None = None
         self._said_gone = False
         self._roots: list[str] = []
+        self._writing_file = False  # the FileSink is on and writing
+        self._rrd_size = 0  # at the last space check
+        self._largest_growth = 0  # between two space checks
+        self._live_sink: rr.GrpcSink | None = None
+        self._broken = False  # the file writer failed: the recording takes no more calls
+        self.rrd_error: str | None = None  # why the .rrd stopped early, if it did
         sinks: list[rr.FileSink | rr.GrpcSink] = []
         if request.rrd is not None:
             try:
@@ -107,13 +127,25 @@ class Viewer:
             except OSError as error:
                 raise ViewerError(f"cannot write {request.rrd}: {error.strerror}") from None
             sinks.append(rr.FileSink(str(request.rrd)))
+            self._writing_file = True
         if request.mode is not None:
             url = self._start_viewer()
             if url is not None:
                 self.url = url
-                sinks.append(rr.GrpcSink(url))
+                self._live_sink = rr.GrpcSink(url)
+                sinks.append(self._live_sink)
         if sinks:
-            self.recording.set_sinks(*sinks)
+            try:
+                self.recording.set_sinks(*sinks)
+            except RuntimeError as error:  # the file's header did not fit (a full disk)
+                self._abandon()
+                self._stop_process()
+                raise ViewerError(f"cannot write {request.rrd}: {error}") from None
+
+    @property
+    def active(self) -> bool:
+        """Whether anything still takes the recording (the file or a live viewer)."""
+        return not self._broken and (self._writing_file or self._live_sink is not None)
 
     # ------------------------------------------------------------ viewers
 
@@ -200,11 +232,74 @@ class Viewer:
             self._said_gone = True
             log.warning("the Rerun viewer went away; estimating on (the .rrd, if any, continues)")
 
+    # ------------------------------------------------------------ the file
+
+    def check_space(self) -> None:
+        """Close the .rrd, complete, when its disk is about to fill up (called often:
+        by the service's timer, and every few hundred records on replay)."""
+        rrd = self.request.rrd
+        if rrd is None or not self._writing_file or self._broken:
+            return
+        try:
+            free = shutil.disk_usage(rrd.parent).free
+            size = rrd.stat().st_size
+        except OSError:
+            return
+        self._largest_growth = max(self._largest_growth, size - self._rrd_size)
+        self._rrd_size = size
+        reserve = RRD_DISK_RESERVE_BYTES + RRD_FOOTER_SHARE * size + 2 * self._largest_growth
+        if free >= reserve:
+            return
+        self._writing_file = False
+        try:
+            self.recording.flush(timeout_sec=5.0)
+            if self._live_sink is not None:  # dropping the FileSink writes its footer
+                self.recording.set_sinks(self._live_sink)
+            else:
+                self.recording.disconnect()
+        except RuntimeError as error:
+            self._file_failed(error)
+            return
+        self.rrd_error = f"stopped with {free // 1024} kB left on its disk"
+        log.error(
+            "%s: only %d kB left on its disk: the recording stops here, complete (estimating on)",
+            rrd,
+            free // 1024,
+        )
+
+    def _file_failed(self, error: RuntimeError) -> None:
+        """The file writer gave up (a disk filled faster than :meth:`check_space` saw)."""
+        rrd = self.request.rrd
+        self._writing_file = False
+        self._abandon()
+        cause = str(error)
+        with contextlib.suppress(OSError):
+            if rrd is not None and shutil.disk_usage(rrd.parent).free < RRD_DISK_RESERVE_BYTES:
+                cause = f"no space left on device ({error})"
+        self.rrd_error = f"cannot write: {cause}"
+        log.error(
+            "cannot write %s: %s; the recording stops here without its footer "
+            "(`rerun rrd optimize %s > repaired.rrd` recovers what it holds); estimating on",
+            rrd,
+            cause,
+            rrd,
+        )
+
+    def _abandon(self) -> None:
+        """Never call the recording again, and keep it from being dropped: rerun-sdk 0.41
+        can hang for ever flushing a file writer that failed, when the recording is
+        dropped or at exit (its exit hook flushes every recording)."""
+        self._broken = True
+        ctypes.pythonapi.Py_IncRef(ctypes.py_object(self.recording))
+        rr.unregister_shutdown()
+
     # ------------------------------------------------------------ recording
 
     def add_stream(self, root: str) -> None:
         """A new IMU stream: send the default layout with its views."""
         self._roots.append(root)
+        if self._broken:
+            return
         with contextlib.suppress(RuntimeError):
             self.recording.send_blueprint(
                 blueprint(self._roots), make_active=True, make_default=True
@@ -212,10 +307,14 @@ class Viewer:
 
     def flush(self) -> None:
         """Push buffered data to the sinks; a viewer that cannot take it is reported once."""
+        if self._broken:
+            return
         try:
             self.recording.flush(timeout_sec=2.0)
-        except RuntimeError as error:  # the gRPC sink gave up on an unreachable viewer
-            if not self._said_gone:
+        except RuntimeError as error:
+            if self._writing_file and self._is_file_error(error):
+                self._file_failed(error)
+            elif not self._said_gone:  # the gRPC sink gave up on an unreachable viewer
                 self._said_gone = True
                 log.warning("the Rerun viewer is unreachable (%s); estimating on", error)
 
@@ -223,7 +322,14 @@ class Viewer:
         """Flush everything; a viewer mavest served for the browser goes with mavest, a
         spawned desktop viewer stays open for the user."""
         self.flush()
-        with contextlib.suppress(RuntimeError):
-            self.recording.disconnect()
+        if not self._broken:
+            with contextlib.suppress(RuntimeError):
+                self.recording.disconnect()
         if self.request.mode == "serve":
             self._stop_process()
+
+    def _is_file_error(self, error: RuntimeError) -> bool:
+        """Whether a failed flush is the file's: rerun names its file writer, or says it
+        timed out, which with no live viewer can only be the file."""
+        text = str(error).lower()
+        return "file" in text or self._live_sink is None

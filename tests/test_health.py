@@ -1,0 +1,229 @@
+"""The filter's health: checked after every step, a broken or diverged filter re-initialised.
+
+The checks themselves are the kernel's (``recursion._check_health``); here numpy
+checks the covariance independently (eigenvalues, not a Cholesky), and the
+recoveries are measured against the same runs without them.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+import rerun as rr
+from rerun.chunk import RrdReader
+from scipy.spatial.transform import Rotation
+
+from mavest import Estimator, EstimatorConfig, StepFlags
+from mavest.estimator.recursion import _state_is_healthy
+from mavest.mavlink.tlog import TlogReader
+from mavest.service.config import ServiceConfig
+from mavest.service.pipeline import Pipeline
+from mavest.service.runners import RunReport
+from mavest.sim import Motion, simulate
+from mavest.sim.flight import apply_imu_errors, fly
+from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
+from mavest.viz.recorder import RerunRecorder
+
+G = 9.80665
+RESETS = StepFlags.UNHEALTHY_RESET | StepFlags.DIVERGED
+
+
+def _wxyz(rotation: Rotation) -> np.ndarray:
+    return np.roll(rotation.as_quat(), 1)
+
+
+def _tilt_deg(q: np.ndarray) -> np.ndarray:
+    """Angle between the estimated and the true (level) vertical."""
+    return np.degrees(np.arccos(np.clip(1.0 - 2.0 * (q[..., 1] ** 2 + q[..., 2] ** 2), -1, 1)))
+
+
+def _at_rest(seconds: float, rate: float, seed: int) -> tuple[np.ndarray, ...]:
+    rng = np.random.default_rng(seed)
+    n = round(seconds * rate)
+    t = np.arange(1, n + 1) / rate
+    gyro = rng.normal(0.0, 0.002, (n, 3))
+    accel = np.array([0.0, 0.0, -G]) + rng.normal(0.0, 0.05, (n, 3))
+    return t, gyro, accel
+
+
+def _settled(rate: float = 200.0) -> Estimator:
+    estimator = Estimator()
+    t, gyro, accel = _at_rest(2.0, rate, seed=1)
+    estimator.update_batch(t, gyro, accel)
+    return estimator
+
+
+def _corrupt_negative_variance(state: np.ndarray) -> None:
+    state["P"][0][0, 0] = -1e-4
+
+
+def _corrupt_nan(state: np.ndarray) -> None:
+    state["P"][0][4, 1] = state["P"][0][1, 4] = math.nan
+
+
+def _corrupt_indefinite(state: np.ndarray) -> None:
+    # symmetric with positive variances, but |ρ| > 1 between tilt and bias
+    P = state["P"][0]
+    P[0, 3] = P[3, 0] = 2.0 * math.sqrt(P[0, 0] * P[3, 3])
+
+
+def _corrupt_unbounded(state: np.ndarray) -> None:
+    state["P"][0][3, 3] = 1e3  # (rad/s)²: σ of a gyro bias beyond any sensor
+
+
+def _corrupt_bias(state: np.ndarray) -> None:
+    state["b"][0][:] = (1.0, 0.0, 0.0)  # rad/s
+
+
+def _corrupt_quaternion(state: np.ndarray) -> None:
+    state["q"][0][:] = math.nan
+
+
+CORRUPTIONS = [
+    _corrupt_negative_variance,
+    _corrupt_nan,
+    _corrupt_indefinite,
+    _corrupt_unbounded,
+    _corrupt_bias,
+    _corrupt_quaternion,
+]
+
+
+@pytest.mark.parametrize("corrupt", CORRUPTIONS)
+def test_the_health_check_finds_each_kind_of_broken_state(corrupt) -> None:
+    # the kernel's own check (run after every step), on a state as a step could leave it
+    estimator = _settled()
+    state, coefficients = estimator._state, estimator._coefficients
+    assert _state_is_healthy(state[0], coefficients[0])
+    corrupt(state)
+    assert not _state_is_healthy(state[0], coefficients[0])
+
+
+# A negative or an absurd variance written between two steps is overwritten by the next
+# update before the check sees it; these four survive a step, as an accident would.
+@pytest.mark.parametrize(
+    "corrupt", [_corrupt_nan, _corrupt_indefinite, _corrupt_bias, _corrupt_quaternion]
+)
+def test_a_broken_state_is_re_initialised_at_the_next_step_and_said_so(corrupt) -> None:
+    estimator = _settled()
+    corrupt(estimator._state)
+    tilted = Rotation.from_euler("x", 20.0, degrees=True)
+    accel = tilted.inv().apply([0.0, 0.0, -G])  # the vehicle now rests at 20° roll
+    out = estimator.update(2.005, [0.0, 0.0, 0.0], accel)
+    assert out.flags & StepFlags.UNHEALTHY_RESET, out.status
+    assert estimator.unhealthy_resets == 1 and estimator.divergence_resets == 0
+    assert np.all(np.isfinite(out.q)) and np.all(np.isfinite(out.cov))
+    np.testing.assert_array_equal(out.cov, out.cov.T)
+    assert np.linalg.eigvalsh(out.cov).min() > 0.0
+    # tilt taken from this sample's accelerometer, the bias from its prior
+    assert math.degrees(out.euler[0]) == pytest.approx(20.0, abs=1e-6)
+    np.testing.assert_array_equal(out.bias, np.zeros(3))
+    # and it carries on as a healthy filter
+    t, gyro, accel_rest = _at_rest(1.0, 200.0, seed=2)
+    after = estimator.update_batch(2.005 + t, gyro, tilted.inv().apply(accel_rest))
+    assert not np.any(after.flags & RESETS)
+
+
+def test_covariance_is_healthy_on_every_step_and_heading_sigma_stops_at_180_degrees() -> None:
+    # 6-D with a 5°/s bias prior that rest detection may not settle: heading's σ
+    # grows as σ_b·t, past 180° after 36 s, and on without bound
+    config = EstimatorConfig(initial_bias_sigma=math.radians(5.0), rest_detection=False)
+    t, gyro, accel = _at_rest(120.0, 100.0, seed=3)
+    out = Estimator(config).update_batch(t, gyro, accel)
+    assert not np.any(out.flags & RESETS)
+    np.testing.assert_array_equal(out.cov, np.swapaxes(out.cov, 1, 2))
+    assert np.linalg.eigvalsh(out.cov).min() > 0.0
+    heading_sigma = np.degrees(np.sqrt(out.cov[:, 2, 2]))  # left error: world vertical
+    assert heading_sigma.max() == pytest.approx(180.0, rel=1e-9)
+    assert np.mean(heading_sigma > 179.999) > 0.5  # reached, and held there
+    tilt_sigma = np.degrees(np.sqrt(out.cov[:, [0, 1], [0, 1]]))
+    assert tilt_sigma[t > 10.0].max() < 5.0  # the cap leaves tilt alone
+    # a turning flight, where the bias is observable: healthy all along too
+    data = simulate(120.0, 100.0, motion=Motion(), seed=3)
+    flight = Estimator(config).update_batch(data.t, data.gyro, data.accel)
+    assert not np.any(flight.flags & RESETS)
+    assert np.linalg.eigvalsh(flight.cov).min() > 0.0
+
+
+def test_a_confidently_wrong_bias_is_a_divergence_and_re_initialisation_cures_it() -> None:
+    # A filter sure (σ 0.006°/s) of a bias 3°/s off: the gyro drags the attitude away
+    # while the accelerometer says level. Reopening tilt alone does not cure it.
+    t, gyro, accel = _at_rest(50.0, 200.0, seed=0)
+    tilt_at_end = {}
+    for window in (30.0, 0.0):
+        estimator = Estimator(EstimatorConfig(divergence_window=window))
+        estimator.initialise(
+            0.0, [1.0, 0.0, 0.0, 0.0], bias=[math.radians(3.0), 0, 0], cov=1e-8 * np.eye(6)
+        )
+        out = estimator.update_batch(t, gyro, accel)
+        tilt_at_end[window] = float(np.max(_tilt_deg(out.q[t > 45.0])))
+        if window:
+            diverged = np.flatnonzero(out.flags & StepFlags.DIVERGED)
+            assert len(diverged) == 1 and estimator.divergence_resets == 1
+            reopened = np.flatnonzero(out.flags & StepFlags.TILT_REOPENED)
+            assert len(reopened) == 1 and reopened[0] < diverged[0]
+            assert t[diverged[0]] - t[reopened[0]] < window
+            assert t[diverged[0]] < 45.0
+        else:
+            assert not np.any(out.flags & RESETS)
+    assert tilt_at_end[30.0] < 2.0, tilt_at_end
+    assert tilt_at_end[0.0] > 45.0, tilt_at_end
+
+
+@pytest.mark.parametrize("seed", [2, 4])
+def test_turning_flights_without_aiding_reopen_tilt_but_never_diverge(seed: int) -> None:
+    # the hardest case for the accelerometer: coordinated turns with their linear
+    # acceleration not removed (no GPS); in these two flights a turn lasts long
+    # enough for tilt to be reopened once, which is not a divergence
+    flight = fly(120.0, 200.0, seed)
+    gyro, accel = apply_imu_errors(flight, seed=seed)
+    out = Estimator().update_batch(flight.t, gyro, accel)
+    assert np.count_nonzero(out.flags & StepFlags.TILT_REOPENED) == 1
+    assert not np.any(out.flags & RESETS)
+
+
+def test_the_service_reports_a_reset_in_its_log_summary_and_recording(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    flight = tmp_path / "flight.tlog"
+    write_flight_tlog(flight, 12.0, 200.0, AUTOPILOTS["ardupilot"], seed=2)
+    rrd = tmp_path / "events.rrd"
+    recording = rr.RecordingStream("mavest-health-test")
+    recording.save(str(rrd))
+    recorder = RerunRecorder(recording)
+    pipeline = Pipeline(ServiceConfig(), sinks=[recorder])
+    broken_at = None
+    for record in TlogReader.open(flight):
+        if record.message is None:
+            continue
+        pipeline.on_message(record.message, record.timestamp_us)
+        stream = next(iter(pipeline.streams.values()), None)
+        if broken_at is None and stream is not None and stream.stats.estimated == 1000:
+            stream.estimator._state["P"][0][1, 1] = math.nan  # as a numerical accident would
+            broken_at = stream.stats.last_t
+    recorder.close()
+    recording.flush()
+    recording.disconnect()
+    assert broken_at is not None
+    stats = stream.stats
+    assert stats.unhealthy == 1 and stats.diverged == 0 and stats.estimated == 2401
+    assert "failed its health check" in caplog.text and "re-initialised" in caplog.text
+    report = RunReport(pipeline, 1.0, source=str(flight))
+    assert "filter health: 1 re-initialised after a failed health check" in report.summary()
+
+    def column(component: str) -> list:
+        chunks = list(RrdReader(str(rrd)).stream().filter(components=component))
+        assert len(chunks) == 1 and chunks[0].entity_path.endswith("/events")
+        return chunks[0].to_record_batch().column(component).to_pylist()
+
+    assert column("TextLog:text") == [["state failed its health check: re-initialised"]]
+    assert column("TextLog:level") == [["WARN"]]
+    (batch,) = [
+        c.to_record_batch() for c in RrdReader(str(rrd)).stream().filter(components="TextLog:text")
+    ]
+    event_time = batch.column("vehicle_time").cast(pa.int64()).to_numpy()[0] / 1e9
+    assert event_time == pytest.approx(broken_at + 1.0 / 200.0, abs=1e-6)
