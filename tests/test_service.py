@@ -205,6 +205,15 @@ def mavproxy() -> Path:
     return script
 
 
+def _udp_port_taken(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return True
+    return False
+
+
 def test_mavproxy_logs_mavests_attitude(mavproxy: Path, tmp_path: Path) -> None:
     proxy_port, service_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     proxy_log = tmp_path / "mavproxy.tlog"
@@ -227,7 +236,9 @@ def test_mavproxy_logs_mavests_attitude(mavproxy: Path, tmp_path: Path) -> None:
     )
     try:
         deadline = time.monotonic() + 60
-        while not proxy_log.exists():  # created once MAVProxy listens
+        # its log is created before it listens: wait for its port too, or the first
+        # answers would go nowhere
+        while not (proxy_log.exists() and _udp_port_taken(proxy_port)):
             assert proxy.poll() is None and time.monotonic() < deadline, "MAVProxy did not start"
             time.sleep(0.1)
         service = ServiceProcess(

@@ -26,3 +26,7 @@ def stop_on_signals(stop: asyncio.Event | None = None) -> Iterator[asyncio.Event
     finally:
         for signum in STOP_SIGNALS:
             loop.remove_signal_handler(signum)
+        if event.is_set():
+            # Asked to stop, and stopping: a second Ctrl-C from here to the exit (the
+            # summary, Rerun's own shutdown) would only print a traceback.
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
