@@ -188,9 +188,9 @@ def _settle_heap() -> None:
     the garbage collector's view before the per-sample work starts.
 
     A full collection walks every tracked object, and numba, numpy and rerun leave
-    hundreds of thousands of them; the Rerun recorder holds each batch's estimates
-    for a moment, which makes full collections frequent. Frozen, those objects are
-    no longer walked (see the README's known limits for what the recorder still costs).
+    hundreds of thousands of them; the Rerun recorder's tuples (one per sample, until
+    its block is packed) make collections frequent. Frozen, those objects are no
+    longer walked (see the README's known limits for what the recorder still costs).
     """
     gc.collect()
     gc.freeze()

@@ -204,8 +204,9 @@ class RerunRecorder:
 
         A file's batches may be large: each costs ~8 ms (~30 ``send_columns`` calls, as
         many chunks to encode) whatever its size, while a row waiting costs 112 bytes. No
-        clock for a file: ``mavest run`` flushes its outputs every second anyway, and a
-        replay's batches then do not depend on how fast the machine is (so that
+        clock for a file: ``mavest run`` sends a file-only recording every 10 s anyway
+        (``runners.FILE_ONLY_FLUSH_PERIOD``), and a replay's batches then do not depend
+        on how fast the machine is (so that
         ``tools/service_bench.py --instructions`` counts the same work under valgrind).
         """
         if live:
