@@ -7,14 +7,12 @@ measured on the local copies (numbers in each test) and carry a margin.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from tool_module import load_tool
 
 from mavest import estimate
 from mavest.datasets import DATA_ENV_VAR, data_root
@@ -28,23 +26,10 @@ from mavest.datasets.autopilot_logs import (
     log_path,
 )
 
-PROJECT = Path(__file__).resolve().parents[1]
 G0 = 9.80665
 
 
-def _load_tool() -> ModuleType:
-    """tools/autopilot_logs.py as a module (tools/ is not a package)."""
-    spec = importlib.util.spec_from_file_location(
-        "autopilot_logs_tool", PROJECT / "tools" / "autopilot_logs.py"
-    )
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up here
-    spec.loader.exec_module(module)
-    return module
-
-
-tool = _load_tool()
+tool = load_tool("autopilot_logs")
 
 
 def shared_log(relative: str) -> Path:

@@ -7,16 +7,15 @@ pymavlink's parse as processes of their own).
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import re
 import subprocess
 import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
+from tool_module import load_tool
 
 PROJECT = Path(__file__).resolve().parents[1]
 TOOL = PROJECT / "tools" / "long_run.py"
@@ -24,17 +23,7 @@ MINUTES = 0.4  # 24 s: blocks of 12 s, the first scored after the 10 s settle ti
 RATE = 500.0
 
 
-def _load_tool() -> ModuleType:
-    """tools/long_run.py as a module (tools/ is not a package)."""
-    spec = importlib.util.spec_from_file_location("long_run_tool", TOOL)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up here
-    spec.loader.exec_module(module)
-    return module
-
-
-tool = _load_tool()
+tool = load_tool("long_run")
 
 
 @pytest.fixture(scope="module")

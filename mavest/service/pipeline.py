@@ -396,10 +396,13 @@ class Pipeline:
                     stream.held.clear()
                 stream.held.append(sample)
             return
-        held, stream.held = stream.held, []
-        if held and not (event is ClockEvent.REBOOT or reading.dt > clock.max_jump):
-            held = []  # single stamps off the timeline, and the timeline went on: bad ones
-        stats.off_timeline -= len(held)
+        held: list[ImuSample] = []
+        if stream.held:  # rare: nothing to allocate per sample
+            if event is ClockEvent.REBOOT or reading.dt > clock.max_jump:
+                held = stream.held  # the new timeline's first samples
+                stats.off_timeline -= len(held)
+            # else single stamps off the timeline, and the timeline went on: bad ones
+            stream.held = []
         t = reading.t
         if event is ClockEvent.REBOOT:
             stats.reboots += 1

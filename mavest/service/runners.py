@@ -117,6 +117,8 @@ class _Opened:
         self.tlog = TlogWriter(outputs.tlog) if outputs.tlog is not None else None
         self.viewer: Viewer | None = None
         self.recorder: RerunRecorder | None = None
+        self._recorder_period = 0.0  # s between the recorder's batches (0: every flush)
+        self._recorder_flushed = 0.0  # time.monotonic() of the last one
         # the pipeline's estimate sinks: the recorder, until nothing takes the recording
         self.sinks: list[RerunRecorder] = []
         request = outputs.viewer_request()
@@ -132,8 +134,9 @@ class _Opened:
             # a viewer should feel live; a file only needs what is buffered on disk
             # now and then (each batch costs ~30 send_columns: 3 % of the CPU at 1 kHz
             # if sent every second)
-            self._recorder_period = 0.0 if request.mode is not None else FILE_ONLY_FLUSH_PERIOD
-            self._recorder_flushed = time.monotonic()
+            if request.mode is None:
+                self._recorder_period = FILE_ONLY_FLUSH_PERIOD
+                self._recorder_flushed = time.monotonic()
             self.recorder.on_new_stream.append(self.viewer.add_stream)
             self.sinks.append(self.recorder)
 
@@ -404,6 +407,11 @@ def _status(pipeline: Pipeline) -> None:
         log.info("signing: %s", pipeline.verifier.describe())
 
 
+def _counted(counts: tuple[tuple[str, int], ...]) -> list[str]:
+    """ "N name" for each count that is not zero."""
+    return [f"{value} {name}" for name, value in counts if value]
+
+
 def format_summary(report: RunReport) -> str:
     """The one-screen summary printed at the end of a run."""
     pipeline = report.pipeline
@@ -431,9 +439,8 @@ def format_summary(report: RunReport) -> str:
             f"  {stream.key}{role}: {stats.estimated} of {stats.received} samples over "
             f"{stats.span:.1f} s at {stream.rate:.1f} Hz"
         )
-        problems = [
-            f"{value} {name}"
-            for name, value in (
+        problems = _counted(
+            (
                 ("rejected", stats.rejected),
                 ("duplicates", stats.duplicates),
                 ("out of order", stats.out_of_order),
@@ -443,23 +450,20 @@ def format_summary(report: RunReport) -> str:
                 ("reboots", stats.reboots),
                 ("wraps", stats.wraps),
             )
-            if value
-        ]
+        )
         lines.append("    " + (", ".join(problems) if problems else "no gaps, nothing rejected"))
         if stats.rejected_reasons:
             lines.append(
                 "    rejected: "
                 + "; ".join(f"{n} {why}" for why, n in stats.rejected_reasons.items())
             )
-        health = [
-            f"{value} {name}"
-            for name, value in (
+        health = _counted(
+            (
                 ("tilt reopened (accelerometer disturbed too long)", stats.tilt_reopened),
                 ("re-initialised after a divergence", stats.diverged),
                 ("re-initialised after a failed health check", stats.unhealthy),
             )
-            if value
-        ]
+        )
         lines.append("    filter health: " + (", ".join(health) if health else "no resets"))
         if stats.mag_samples:
             used = 100.0 * stats.mag_used / stats.mag_samples
