@@ -153,7 +153,9 @@ def _replay(args: argparse.Namespace) -> int:
 
     async def main() -> Any:
         with stop_on_signals() as stop:
-            return await replay(args.tlog, config, outputs, speed=args.speed, stop=stop)
+            return await replay(
+                args.tlog, config, outputs, speed=args.speed, stop=stop, fast=not args.one_by_one
+            )
 
     try:
         report = asyncio.run(main())
@@ -404,6 +406,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rep.add_argument("tlog", type=Path, metavar="FILE.tlog")
     rep.add_argument("--speed", type=float, help="pace the replay (1 = real time; default: fast)")
+    rep.add_argument(
+        "--one-by-one",
+        action="store_true",
+        help="take every record singly, as the live service does (the same result, in "
+        "several times the time; without it, clean stretches of the log go through a "
+        "compiled path, unless --speed paces the replay)",
+    )
     rep.add_argument(
         "--settle", type=float, metavar="S", help="seconds before accuracy is scored (default 10)"
     )

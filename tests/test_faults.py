@@ -402,9 +402,10 @@ def test_a_full_disk_ends_the_tlog_at_a_whole_record_and_replay_goes_on(
 def _batches_land_during_the_replay(monkeypatch: pytest.MonkeyPatch) -> None:
     """Small recorder batches, so that a short replay writes its .rrd as a long one does
     (a file-only recording is otherwise sent in batches of 32768 rows: here, at the end)."""
-    recorder = runners.RerunRecorder
+    from mavest.viz.recorder import RerunRecorder
+
     monkeypatch.setattr(
-        recorder,
+        RerunRecorder,
         "for_viewer",
         classmethod(lambda cls, recording, live: cls(recording, batch_rows=1024)),
     )

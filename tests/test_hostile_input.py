@@ -63,6 +63,11 @@ class Flight:
 
 @pytest.fixture(scope="module")
 def flights(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Flight]:
+    return clean_flights(tmp_path_factory)
+
+
+def clean_flights(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Flight]:
+    """One clean 8 s flight at 200 Hz per autopilot flavour, as records."""
     out = {}
     for flavour in ("ardupilot", "px4"):
         path = tmp_path_factory.mktemp("clean") / f"{flavour}.tlog"

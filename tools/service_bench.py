@@ -1,15 +1,18 @@
 """The service's speed: live latency, replay throughput beside pymavlink, Rerun's cost.
 
-    .venv/bin/python tools/service_bench.py [--seconds 30] [--rate 1000] [--replay-seconds 60]
+    .venv/bin/python tools/service_bench.py [--seconds 30] [--rate 1000] [--replay-seconds 300]
 
 Live: the simulated vehicle streams RAW_IMU at ``--rate`` over loopback UDP to
 ``mavest run udpin:…`` (a separate process, as users run it) and times every
 IMU packet sent → ATTITUDE received, matched by ``time_boot_ms``. Replay: a
-1 kHz simulated flight written to a tlog, then the whole command
-``mavest replay FILE --out-tlog OUT`` timed, beside pymavlink reading every
-message of the same file (``recv_msg`` until the end), in the same run.
-Rerun: the same replay with and without ``--rrd`` in interleaved rounds, CPU
-time (user + system) of the whole command; the ratio is what recording costs.
+1 kHz simulated flight (``--replay-seconds``) written to a tlog, then the whole
+command ``mavest replay FILE --out-tlog OUT`` timed, beside pymavlink reading every
+message of the same file (``recv_msg`` until the end) and the same command with
+``--one-by-one``, in interleaved rounds; and the command on a 1 s flight, which is
+its start-up (imports, the compiled kernels loaded from the cache).
+Rerun: a ``--rerun-seconds`` replay with and without ``--rrd`` in interleaved rounds,
+sample by sample as the live service works (``--one-by-one``), CPU time (user +
+system) of the whole command; the ratio is what recording costs.
 ``--instructions`` adds the same comparison counted in instructions under valgrind
 (callgrind, every thread of the replay, Rerun's encoder and writer included), which a
 busy machine does not disturb: 2 s and ``--instruction-seconds`` flights with and
@@ -56,29 +59,57 @@ def live(seconds: float, rate: float) -> dict[str, float]:
     }
 
 
-def replay_throughput(seconds: float, workdir: Path) -> dict[str, float]:
-    flight = workdir / "flight_1khz.tlog"
-    write_flight_tlog(flight, seconds, 1000.0, AUTOPILOTS["ardupilot"], seed=1)
-    out = workdir / "out.tlog"
-    subprocess.run([*MAVEST, "replay", str(flight), "-q"], check=True, capture_output=True)
+def _wall_seconds(command: list[str]) -> float:
     start = time.perf_counter()
-    subprocess.run(
-        [*MAVEST, "replay", str(flight), "--out-tlog", str(out), "-q"],
-        check=True,
-        capture_output=True,
-    )
-    ours = time.perf_counter() - start
-    start = time.perf_counter()
-    connection = mavutil.mavlink_connection(str(flight), robust_parsing=True)
+    subprocess.run(command, check=True, capture_output=True)
+    return time.perf_counter() - start
+
+
+def _pymavlink_parse(path: Path) -> int:
+    """Every message of a tlog through pymavlink's reader (robust, as users read logs)."""
+    connection = mavutil.mavlink_connection(str(path), robust_parsing=True)
     messages = 0
     while connection.recv_msg() is not None:
         messages += 1
-    theirs = time.perf_counter() - start
+    connection.close()
+    return messages
+
+
+def replay_throughput(seconds: float, workdir: Path, rounds: int) -> dict[str, float]:
+    """Wall time of the whole ``mavest replay FILE --out-tlog OUT`` on a 1 kHz flight,
+    beside pymavlink's parse of the same file and mavest's one-record-at-a-time path,
+    in interleaved rounds (medians); and the command on a 1 s flight: its start-up."""
+    flight = workdir / "flight_1khz.tlog"
+    write_flight_tlog(flight, seconds, 1000.0, AUTOPILOTS["ardupilot"], seed=1)
+    short = workdir / "flight_1s.tlog"
+    write_flight_tlog(short, 1.0, 1000.0, AUTOPILOTS["ardupilot"], seed=1)
+    out = workdir / "out.tlog"
+    fast = [*MAVEST, "replay", str(flight), "--out-tlog", str(out), "-q"]
+    one_by_one = [*fast, "--one-by-one"]
+    startup = [*MAVEST, "replay", str(short), "--out-tlog", str(out), "-q"]
+    subprocess.run(startup, check=True, capture_output=True)  # a warm numba cache
+    times: dict[str, list[float]] = {"fast": [], "one": [], "pymavlink": [], "startup": []}
+    messages = 0
+    for _ in range(rounds):
+        times["fast"].append(_wall_seconds(fast))
+        start = time.perf_counter()
+        messages = _pymavlink_parse(flight)
+        times["pymavlink"].append(time.perf_counter() - start)
+        times["one"].append(_wall_seconds(one_by_one))
+        times["startup"].append(_wall_seconds(startup))
+    median = {name: float(np.median(values)) for name, values in times.items()}
+    ratios = np.array(times["pymavlink"]) / np.array(times["fast"])
     return {
         "messages": messages,
-        "mavest replay s": ours,
-        "pymavlink parse s": theirs,
-        "ratio": theirs / ours,
+        "mavest replay s": median["fast"],
+        "one by one s": median["one"],
+        "pymavlink parse s": median["pymavlink"],
+        "startup s": median["startup"],
+        "ratio": float(np.median(ratios)),
+        "ratio min": float(ratios.min()),
+        "ratio max": float(ratios.max()),
+        "one by one ratio": median["pymavlink"] / median["one"],
+        "MB": flight.stat().st_size / 1e6,
     }
 
 
@@ -101,7 +132,9 @@ def rerun_cost(seconds: float, workdir: Path, rounds: int) -> dict[str, float]:
     """
     flight = workdir / "flight_rerun.tlog"
     write_flight_tlog(flight, seconds, 1000.0, AUTOPILOTS["ardupilot"], seed=2)
-    plain = [*MAVEST, "replay", str(flight), "-q"]
+    # sample by sample, as the live service works: a recording needs each estimate as it
+    # comes, so a replay with --rrd takes that path anyway
+    plain = [*MAVEST, "replay", str(flight), "-q", "--one-by-one"]
     recorded = [*plain, "--rrd", str(workdir / "x.rrd")]
     _cpu_seconds(plain)  # warm the caches
     without, with_rrd = [], []
@@ -194,7 +227,7 @@ def rerun_instructions(seconds: float, workdir: Path, jobs: int) -> dict[str, fl
         write_flight_tlog(flights[length], length, 1000.0, AUTOPILOTS["ardupilot"], seed=2)
 
     def command(length: float, rrd: bool, run: int = 0) -> list[str]:
-        plain = [*MAVEST, "replay", str(flights[length]), "-q"]
+        plain = [*MAVEST, "replay", str(flights[length]), "-q", "--one-by-one"]
         return [*plain, "--rrd", str(workdir / f"i{length:g}_{run}.rrd")] if rrd else plain
 
     # warm the cache (compiled for valgrind's CPU) natively: nothing compiles when counted
@@ -230,8 +263,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="live stream length")
     parser.add_argument("--rate", type=float, default=1000.0, help="live IMU rate, Hz")
-    parser.add_argument("--replay-seconds", type=float, default=60.0, help="1 kHz tlog length")
-    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds for Rerun's cost")
+    parser.add_argument("--replay-seconds", type=float, default=300.0, help="1 kHz tlog length")
+    parser.add_argument(
+        "--rerun-seconds", type=float, default=30.0, help="1 kHz tlog length for Rerun's cost"
+    )
+    parser.add_argument(
+        "--rounds", type=int, default=3, help="interleaved rounds (replay, Rerun's cost)"
+    )
     parser.add_argument(
         "--instructions",
         action="store_true",
@@ -263,9 +301,10 @@ def main() -> int:
         )
     with tempfile.TemporaryDirectory() as workdir:
         if "replay" in parts:
-            print_replay(replay_throughput(args.replay_seconds, Path(workdir)), args)
+            replayed = replay_throughput(args.replay_seconds, Path(workdir), args.rounds)
+            print_replay(replayed, args)
         if "rerun" in parts:
-            cost = rerun_cost(args.replay_seconds, Path(workdir), args.rounds)
+            cost = rerun_cost(args.rerun_seconds, Path(workdir), args.rounds)
             counted = None
             if args.instructions:
                 counted = rerun_instructions(args.instruction_seconds, Path(workdir), args.jobs)
@@ -274,26 +313,34 @@ def main() -> int:
 
 
 def print_replay(replayed: dict[str, float], args: argparse.Namespace) -> None:
-    rate_ours = replayed["messages"] / replayed["mavest replay s"]
-    rate_theirs = replayed["messages"] / replayed["pymavlink parse s"]
-    print(f"\nReplay of a {args.replay_seconds:g} s 1 kHz tlog ({replayed['messages']} messages)")
-    print("| | wall s | messages/s | vs pymavlink parse |")
+    messages = replayed["messages"]
+    print(
+        f"\nReplay of a {args.replay_seconds:g} s 1 kHz tlog ({messages:.0f} messages, "
+        f"{replayed['MB']:.1f} MB), wall s, medians of {args.rounds} interleaved rounds"
+    )
+    print("| | wall s | messages/s | × pymavlink's parse (rounds' range) |")
     print("|---|---:|---:|---:|")
     print(
-        f"| `mavest replay --out-tlog` (whole command) | {replayed['mavest replay s']:.2f} | "
-        f"{rate_ours:,.0f} | {replayed['ratio']:.2f}× |"
+        f"| `mavest replay FILE --out-tlog OUT` (whole command) | "
+        f"{replayed['mavest replay s']:.2f} | {messages / replayed['mavest replay s']:,.0f} | "
+        f"**{replayed['ratio']:.2f}** ({replayed['ratio min']:.2f}–{replayed['ratio max']:.2f}) |"
+    )
+    print(
+        f"| the same with `--one-by-one` | {replayed['one by one s']:.2f} | "
+        f"{messages / replayed['one by one s']:,.0f} | {replayed['one by one ratio']:.2f} |"
     )
     print(
         f"| pymavlink `recv_msg` loop | {replayed['pymavlink parse s']:.2f} | "
-        f"{rate_theirs:,.0f} | 1× |"
+        f"{messages / replayed['pymavlink parse s']:,.0f} | 1 |"
     )
+    print(f"| `mavest replay` of a 1 s flight (start-up) | {replayed['startup s']:.2f} | | |")
 
 
 def print_rerun(
     cost: dict[str, float], counted: dict[str, float] | None, args: argparse.Namespace
 ) -> None:
     print(
-        f"\nRerun recording at 1 kHz ({args.replay_seconds:g} s replay, CPU s of the whole "
+        f"\nRerun recording at 1 kHz ({args.rerun_seconds:g} s replay, CPU s of the whole "
         f"command, medians of {args.rounds} interleaved rounds"
         + (
             "; instructions per simulated second under valgrind, between "

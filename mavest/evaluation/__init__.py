@@ -8,13 +8,7 @@ that every number in a comparison comes from the same data and the same scoring.
 
 from __future__ import annotations
 
-from mavest.evaluation.metrics import (
-    AttitudeErrors,
-    attitude_errors,
-    heading_offset,
-    remove_heading_offset,
-    rmse_deg,
-)
+from typing import Any
 
 __all__ = [
     "AttitudeErrors",
@@ -23,3 +17,13 @@ __all__ = [
     "remove_heading_offset",
     "rmse_deg",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    # the scoring pulls in scipy.optimize (a second to import); the service imports this
+    # package for its online comparison only, so the scoring loads when first asked for
+    if name in __all__:
+        from mavest.evaluation import metrics
+
+        return getattr(metrics, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -15,6 +15,10 @@ from __future__ import annotations
 import enum
 from typing import NamedTuple
 
+import numpy as np
+
+from mavest._jit import kernel
+
 WRAP_TICKS = 1 << 32
 
 
@@ -130,3 +134,85 @@ class StreamClock:
         else:  # gaps would drag the typical period up; leave them out of it
             self._period = dt if self._period == 0.0 else self._period + 0.05 * (dt - self._period)
         return ClockReading(event, (ticks + self._offset) * tick, dt)
+
+    def read_run(self, ticks: np.ndarray, tick: float) -> np.ndarray:
+        """The times of the leading samples that :meth:`read` would call plainly NEXT
+        (later than the last, not a gap, no wrap or jump), taken as read; the clock is
+        left as after them. For many samples at once (the replay's fast path): the
+        first sample of any other kind is left for :meth:`read`.
+        """
+        if self._last_ticks is None or not ticks.shape[0]:
+            return np.empty(0)
+        times = np.empty(ticks.shape[0])
+        periods = np.empty(ticks.shape[0])
+        count = _plain_run(
+            ticks,
+            self._last_ticks,
+            self._offset,
+            self._period,
+            tick,
+            self.min_gap,
+            self.gap_periods,
+            self.max_jump,
+            times,
+            periods,
+        )
+        return times[:count]
+
+    def take_run(self, ticks: np.ndarray, tick: float, count: int) -> None:
+        """Advance the clock over the first ``count`` samples :meth:`read_run` timed."""
+        if count == 0:
+            return
+        periods = np.empty(count)
+        _plain_run(
+            ticks[:count],
+            self._last_ticks,
+            self._offset,
+            self._period,
+            tick,
+            self.min_gap,
+            self.gap_periods,
+            self.max_jump,
+            np.empty(count),
+            periods,
+        )
+        self._candidate = None
+        self._last_ticks = int(ticks[count - 1])
+        self._period = float(periods[count - 1])
+
+
+# Raw timestamps beyond this are left to the exact integer arithmetic of read().
+_RUN_MAX_TICKS = 1 << 62
+
+
+@kernel
+def _plain_run(
+    ticks: np.ndarray,
+    last: int,
+    offset: int,
+    period: float,
+    tick: float,
+    min_gap: float,
+    gap_periods: float,
+    max_jump: float,
+    times: np.ndarray,
+    periods: np.ndarray,
+) -> int:
+    """StreamClock.read's NEXT branch over many samples; stops at any other event."""
+    for i in range(ticks.shape[0]):
+        t = ticks[i]
+        if t >= _RUN_MAX_TICKS or t < 0:
+            return i
+        delta = t - last
+        if delta <= 0:
+            return i
+        dt = delta * tick
+        if dt > max_jump:
+            return i
+        if period > 0.0 and dt > max(min_gap, gap_periods * period):
+            return i
+        period = dt if period == 0.0 else period + 0.05 * (dt - period)
+        times[i] = (t + offset) * tick
+        periods[i] = period
+        last = t
+    return ticks.shape[0]

@@ -20,6 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
+
+from mavest.mavlink import bulk
 from mavest.mavlink.messages import MAVLink, mavlink2
 
 _STX_V1 = 0xFE
@@ -100,6 +103,9 @@ class TlogReader:
         self._mav.robust_parsing = False
         self.stats = TlogStats()
         self.position = 0
+        self._last_us: int | None = None  # the last record's time
+        self._released = 0  # the mapped file's pages before this are given back
+        self._array: np.ndarray | None = None  # the file as bytes for compiled code
 
     @classmethod
     def open(cls, path: str | Path, wanted: frozenset[int] | None = None) -> TlogReader:
@@ -185,25 +191,54 @@ class TlogReader:
             position += 1
         return n
 
+    @property
+    def array(self) -> np.ndarray:
+        """The file as a read-only uint8 array (no copy: the mapping's pages)."""
+        if self._array is None:
+            self._array = np.frombuffer(self._data, dtype=np.uint8)
+        return self._array
+
+    def scan(self, capacity: int) -> bulk.RecordIndex:
+        """The next clean records (at most ``capacity``), indexed and passed over.
+
+        Clean: a plausible timestamp, a whole packet of a message this dialect
+        defines, its CRC valid (:func:`mavest.mavlink.bulk.scan`). Stops at the
+        first record that is not; iterating the reader from there reads it (and
+        whatever damage follows) the careful way. Empty when no clean record is next.
+        """
+        last_us = -1 if self._last_us is None else self._last_us
+        records = bulk.scan(self.array, self.position, last_us, capacity)
+        if len(records):
+            self.position = int(records.end[-1])
+            self._last_us = int(records.stamp[-1])
+            self.stats.records += len(records)
+            self._release_behind()
+        return records
+
+    def _release_behind(self) -> None:
+        data = self._data
+        if self.position - self._released > _RELEASE_BYTES and isinstance(data, mmap.mmap):
+            self._released = _release_pages(data, self.position - _RELEASE_BYTES // 2)
+
     def __iter__(self) -> Iterator[TlogRecord]:
+        """Records from the current position on (the reader's position and last time
+        follow each record given out, so :meth:`scan` can take over between them)."""
         data = self._data
         n = len(data)
         wanted = self._wanted
         decode = self._mav.decode
         position = self.position
-        last_us: int | None = None
         stats = self.stats
-        released = 0  # the mapped file's pages before this are given back
         while position + 9 <= n:
-            if position - released > _RELEASE_BYTES and isinstance(data, mmap.mmap):
-                released = _release_pages(data, position - _RELEASE_BYTES // 2)
+            last_us = self._last_us
+            self._release_behind()
             length = _packet_length(data, position + 8)
             (stamp,) = _TIMESTAMP.unpack_from(data, position)
             plausible = last_us is None or abs(stamp - last_us) <= _MAX_TIMESTAMP_JUMP_US
             if length <= 0 or not plausible:
                 resumed = self._resynchronise(position, last_us)
                 stats.skipped_bytes += resumed - position
-                position = resumed
+                position = self.position = resumed
                 continue
             end = position + 8 + length
             if end > n:
@@ -211,10 +246,10 @@ class TlogReader:
                 resumed = self._resynchronise(position, last_us)
                 if resumed >= n:
                     stats.truncated_bytes += n - position
-                    position = n
+                    position = self.position = n
                     break
                 stats.skipped_bytes += resumed - position
-                position = resumed
+                position = self.position = resumed
                 continue
             packet = data[position + 8 : end]
             message = None
@@ -229,7 +264,7 @@ class TlogReader:
                     stats.bad_crc += 1
                     resumed = self._resynchronise(position, last_us)
                     stats.skipped_bytes += resumed - position
-                    position = resumed
+                    position = self.position = resumed
                     continue
                 if isinstance(decoded, mavlink2.MAVLink_unknown) and not is_wanted:
                     # an id this dialect does not know has no CRC to check, and nothing
@@ -237,14 +272,13 @@ class TlogReader:
                     stats.bad_crc += 1
                     resumed = self._resynchronise(position, last_us)
                     stats.skipped_bytes += resumed - position
-                    position = resumed
+                    position = self.position = resumed
                     continue
                 if is_wanted:
                     message = decoded
             stats.records += 1
-            last_us = stamp
-            position = end
-            self.position = position
+            self._last_us = stamp
+            position = self.position = end
             yield TlogRecord(stamp, packet, message)
         self.position = position
 
@@ -297,6 +331,17 @@ class TlogWriter:
         self._pending += packet
         self._pending_ends.append(len(self._pending))
         self.records += 1
+        if len(self._pending) >= self.BUFFER_BYTES:
+            self._write_pending()
+
+    def write_records(self, data: np.ndarray, ends: np.ndarray) -> None:
+        """Whole records at once: ``data`` their bytes, ``ends`` where each ends in it."""
+        if self.error is not None or not ends.shape[0]:
+            return
+        base = len(self._pending)
+        self._pending += data.tobytes()
+        self._pending_ends.extend((ends + base).tolist())
+        self.records += int(ends.shape[0])
         if len(self._pending) >= self.BUFFER_BYTES:
             self._write_pending()
 

@@ -61,7 +61,11 @@ _NATIVE_IMU = {
 
 
 class EstimateSink(Protocol):
-    """Something that takes every estimate (the Rerun recorder, a test)."""
+    """Something that takes every estimate (the Rerun recorder, a test).
+
+    A sink that also takes them many at a time (``on_estimates``, ``on_references``:
+    see :class:`~mavest.viz.recorder.RerunRecorder`) lets a replay take its fast path.
+    """
 
     def on_estimate(
         self,
@@ -445,9 +449,7 @@ class Pipeline:
         elif airspeed_aided:
             stats.airspeed_aided += 1
         if flags & StepFlags.GAP_REALIGNED:
-            stats.realigned += 1
-            gap = t - (stats.last_t if stats.last_t is not None else t)
-            log.warning("%s: no samples for %.2f s: attitude re-aligned", stream.key, gap)
+            _report_realigned(stream, t)
         if flags & _HEALTH_EVENTS:
             _report_health(stream, flags, t)
         stats.estimated += 1
@@ -666,6 +668,14 @@ def _report_health(stream: Stream, flags: int, t: float) -> None:
             "not positive definite or out of bounds): re-initialised from this sample",
             *(stream.key, t),
         )
+
+
+def _report_realigned(stream: Stream, t: float) -> None:
+    """Count and say that a gap before the sample at t made the filter re-align."""
+    stats = stream.stats
+    stats.realigned += 1
+    gap = t - (stats.last_t if stats.last_t is not None else t)
+    log.warning("%s: no samples for %.2f s: attitude re-aligned", stream.key, gap)
 
 
 def _report_heading(stream: Stream, flags: int) -> None:

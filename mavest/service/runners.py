@@ -18,17 +18,20 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
+
+import numpy as np
 
 from mavest.estimator import Estimator
+from mavest.mavlink.bulk import RecordIndex
 from mavest.mavlink.links import Link, make_link, parse_endpoint
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import Signing
-from mavest.mavlink.tlog import TlogReader, TlogWriter, message_ids
+from mavest.mavlink.tlog import TlogReader, TlogRecord, TlogWriter, message_ids
+from mavest.service import bulk
 from mavest.service.config import ServiceConfig
 from mavest.service.pipeline import Pipeline, Stream
 from mavest.service.signals import stop_on_signals
-from mavest.viz.recorder import RerunRecorder
 from mavest.viz.viewer import (
     DEFAULT_GRPC_PORT,
     DEFAULT_WEB_PORT,
@@ -36,6 +39,9 @@ from mavest.viz.viewer import (
     ViewerError,
     ViewerRequest,
 )
+
+if TYPE_CHECKING:
+    from mavest.viz.recorder import RerunRecorder
 
 log = logging.getLogger("mavest")
 
@@ -113,6 +119,13 @@ class _Opened:
     """
 
     def __init__(self, outputs: Outputs) -> None:
+        request = outputs.viewer_request()
+        if request.wanted:
+            # rerun-sdk only when asked for (a second to import), and before any file is
+            # opened (an output file that exists means the run has started), the layout's
+            # module too (else the first stream would wait for it)
+            import mavest.viz.blueprint  # noqa: F401
+            from mavest.viz.recorder import RerunRecorder
         self.outputs = outputs
         self.tlog = TlogWriter(outputs.tlog) if outputs.tlog is not None else None
         self.viewer: Viewer | None = None
@@ -121,7 +134,6 @@ class _Opened:
         self._recorder_flushed = 0.0  # time.monotonic() of the last one
         # the pipeline's estimate sinks: the recorder, until nothing takes the recording
         self.sinks: list[RerunRecorder] = []
-        request = outputs.viewer_request()
         if request.wanted:
             try:
                 self.viewer = Viewer(request)
@@ -239,8 +251,14 @@ async def replay(
     speed: float | None = None,
     progress: bool | None = None,
     stop: asyncio.Event | None = None,
+    fast: bool = True,
 ) -> RunReport:
-    """Replay a tlog through the pipeline (:class:`~mavest.mavlink.tlog.TlogError` if unusable)."""
+    """Replay a tlog through the pipeline (:class:`~mavest.mavlink.tlog.TlogError` if unusable).
+
+    ``fast``: clean stretches of the file go through :class:`~mavest.service.bulk.BulkFeed`
+    (the same outcome, compiled) unless the replay is paced; False takes every record
+    one at a time, as the live service does.
+    """
     outputs = outputs or Outputs()
     reader = TlogReader.open(path, REPLAY_MESSAGES)
     opened = _Opened(outputs)
@@ -250,32 +268,55 @@ async def replay(
     _settle_heap()
     report = RunReport(pipeline, 0.0, source=str(path), outputs=outputs)
     heartbeat_period = 1.0 / config.output.heartbeat_rate if config.output.heartbeat_rate else 0.0
+    heartbeat_us = int(heartbeat_period * 1e6)
     next_heartbeat_us = 0
     first_us: int | None = None
+    last_us = 0  # the time of the last record handled
+    feed = None
+    if fast and not speed and bulk.usable(pipeline):
+        feed = bulk.BulkFeed(pipeline, reader.array, REPLAY_MESSAGES, tlog, opened.check_space)
     start = time.perf_counter()
+    records = iter(reader)
     try:
-        for record in reader:
-            stamp = record.timestamp_us
-            if tlog is not None:
-                tlog.write(stamp, record.packet)
-            if record.message is not None:
-                pipeline.on_message(record.message, stamp)
-            if heartbeat_period and stamp >= next_heartbeat_us and pipeline.vehicles:
-                pipeline.heartbeat()
-                next_heartbeat_us = stamp + int(heartbeat_period * 1e6)
-            if reader.stats.records % 256 == 0:
-                bar.update(reader.position, _estimated(pipeline))
-                opened.check_space()
-                if speed:
-                    if first_us is None:
-                        first_us = stamp
-                    ahead = (stamp - first_us) * 1e-6 / speed - (time.perf_counter() - start)
-                    await asyncio.sleep(max(ahead, 0.0))
+        while True:
+            if feed is not None:
+                clean = reader.scan(_SCAN_RECORDS)
+                if len(clean):
+                    next_heartbeat_us = _feed(feed, clean, heartbeat_us, next_heartbeat_us)
+                    last_us = int(clean.stamp[-1])
+                    records = iter(reader)  # the careful reader goes on from here
                 else:
-                    await asyncio.sleep(0)
-                if stop is not None and stop.is_set():
-                    report.interrupted = True
+                    record = next(records, None)
+                    if record is None:
+                        break
+                    last_us = record.timestamp_us
+                    next_heartbeat_us = _one_record(
+                        pipeline, tlog, record, heartbeat_us, next_heartbeat_us
+                    )
+                    if reader.stats.records % 256:
+                        continue
+            else:
+                record = next(records, None)
+                if record is None:
                     break
+                last_us = record.timestamp_us
+                next_heartbeat_us = _one_record(
+                    pipeline, tlog, record, heartbeat_us, next_heartbeat_us
+                )
+                if reader.stats.records % 256:
+                    continue
+            bar.update(reader.position, _estimated(pipeline))
+            opened.check_space()
+            if speed:
+                if first_us is None:
+                    first_us = last_us
+                ahead = (last_us - first_us) * 1e-6 / speed - (time.perf_counter() - start)
+                await asyncio.sleep(max(ahead, 0.0))
+            else:
+                await asyncio.sleep(0)
+            if stop is not None and stop.is_set():
+                report.interrupted = True
+                break
     finally:
         bar.finish()
         opened.close()
@@ -285,6 +326,53 @@ async def replay(
     report.bad_records = reader.stats.bad_crc
     report.skipped_bytes = reader.stats.skipped_bytes + reader.stats.truncated_bytes
     return report
+
+
+# Clean records indexed per scan: about 2 s of a 1 kHz log, so that a signal stops a
+# fast replay within a fraction of a second and the index stays small.
+_SCAN_RECORDS = 4096
+
+
+def _one_record(
+    pipeline: Pipeline, tlog: TlogWriter | None, record: TlogRecord, period_us: int, next_us: int
+) -> int:
+    """One record as it comes: written, handled, a HEARTBEAT after it when one is due.
+
+    Returns when the next HEARTBEAT is due (µs of record time)."""
+    stamp = record.timestamp_us
+    if tlog is not None:
+        tlog.write(stamp, record.packet)
+    if record.message is not None:
+        pipeline.on_message(record.message, stamp)
+    if period_us and stamp >= next_us and pipeline.vehicles:
+        pipeline.heartbeat()
+        next_us = stamp + period_us
+    return next_us
+
+
+def _feed(feed: bulk.BulkFeed, records: RecordIndex, period_us: int, next_us: int) -> int:
+    """Clean records through the fast path, cut where a HEARTBEAT is due after one of
+    them (as :func:`_one_record` would send it). Returns when the next one is due."""
+    pipeline = feed.pipeline
+    start = 0
+    n = len(records)
+    while start < n:
+        end = n
+        if period_us:
+            due = np.flatnonzero(records.stamp[start:] >= next_us)
+            if due.shape[0]:
+                end = start + int(due[0]) + 1
+                if not pipeline.vehicles:
+                    # none to speak for yet: only a decoded record can bring one
+                    decoded = np.flatnonzero(feed.kinds[records.message_id[start:end]] != 0)
+                    end = start + int(decoded[0]) + 1 if decoded.shape[0] else end
+        feed.feed(records.part(slice(start, end)))
+        stamp = int(records.stamp[end - 1])
+        if period_us and stamp >= next_us and pipeline.vehicles:
+            pipeline.heartbeat()
+            next_us = stamp + period_us
+        start = end
+    return next_us
 
 
 def _estimated(pipeline: Pipeline) -> int:

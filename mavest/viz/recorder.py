@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import chain
 from typing import Any
@@ -131,6 +132,20 @@ class _Slots:
         # starts both; an empty interval sends it to ``advance``
         self.slow = self.pose = math.nan
         self.since, self.until = math.inf, -math.inf
+
+    def advance_many(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`advance` for each of these times in turn: which start a slow slot, a
+        pose slot (as booleans); the slots become the last one's."""
+        if not t.shape[0]:
+            empty = np.zeros(0, dtype=bool)
+            return empty, empty
+        slow = (t / self.slow_period) // 1.0
+        pose = (t / self.pose_period) // 1.0
+        # NaN (before the first sample, or a time not finite) differs from every slot
+        starts_slow = slow != np.concatenate(([self.slow], slow[:-1]))
+        starts_pose = pose != np.concatenate(([self.pose], pose[:-1]))
+        self.advance(float(t[-1]))
+        return starts_slow, starts_pose
 
     def advance(self, t: float) -> tuple[bool, bool]:
         """Whether the sample at t starts a slow slot, a pose slot; the slots become its."""
@@ -268,6 +283,75 @@ class RerunRecorder:
         )
         if len(rows) == _BLOCK:
             self._pack(buffer)
+
+    def on_estimates(
+        self,
+        stream: Any,
+        t: np.ndarray,
+        euler: np.ndarray,
+        gyro: np.ndarray,
+        accel: np.ndarray,
+        accel_used: np.ndarray,
+        flags: np.ndarray,
+        q: np.ndarray,
+        estimate_at: Callable[[int], Any],
+        receive_us: np.ndarray,
+        processing_s: float,
+    ) -> None:
+        """Many estimates of one stream, in order (the replay's fast path): as
+        :meth:`on_estimate` for each. ``estimate_at(i)`` gives the i-th one's Estimate
+        (asked only for those that start a slow_rate slot); ``processing_s`` is the time
+        per sample, the batch's divided among its samples."""
+        n = t.shape[0]
+        if not n:
+            return
+        buffer = self._last if stream.key is self._last_key else self._switch(stream)
+        if buffer.rows:  # the rows taken one by one come first
+            buffer.blocks.append(_packed(buffer.rows))
+            buffer.packed += len(buffer.rows)
+            buffer.rows.clear()
+        starts_slow, starts_pose = buffer.slots.advance_many(t)
+        first = buffer.packed
+        buffer.slow.extend((first + i, estimate_at(i)) for i in np.flatnonzero(starts_slow))
+        buffer.poses.extend((first + i, q[i]) for i in np.flatnonzero(starts_pose))
+        block = np.empty((n, _FIELDS))
+        block[:, _T] = t
+        block[:, _RX] = receive_us * 1e-6
+        block[:, _PROCESSING] = processing_s
+        block[:, _EULER] = euler
+        block[:, _GYRO] = gyro
+        block[:, _ACCEL] = accel
+        block[:, _USED] = accel_used
+        block[:, _FLAGS] = flags
+        buffer.blocks.append(block.reshape(-1))
+        buffer.packed += n
+        if (
+            buffer.packed >= self.batch_rows
+            or time.monotonic() - self._last_flush >= self.batch_seconds
+        ):
+            self.flush()
+
+    def on_references(
+        self, stream: Any, source: str, t: np.ndarray, euler: np.ndarray, receive_us: np.ndarray
+    ) -> None:
+        """Many references of one source, in order: as :meth:`on_reference` for each."""
+        if not t.shape[0]:
+            return
+        buffer = self._last if stream.key is self._last_key else self._switch(stream)
+        references = buffer.references.get(source)
+        if references is None:
+            references = buffer.references[source] = _References(self._slots())
+        starts_slow, starts_pose = references.slots.advance_many(t)
+        for i in np.flatnonzero(starts_slow | starts_pose).tolist():
+            references.rows.append(
+                (
+                    float(t[i]),
+                    float(receive_us[i]) * 1e-6,
+                    *(float(x) for x in euler[i]),
+                    bool(starts_slow[i]),
+                    bool(starts_pose[i]),
+                )
+            )
 
     def _pack(self, buffer: _StreamBuffer) -> None:
         """The rows made into a block; the batch sent when full or old enough."""

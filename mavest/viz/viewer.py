@@ -27,11 +27,11 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import urlparse
 
-import rerun as rr
-
-from mavest.viz.blueprint import blueprint
+if TYPE_CHECKING:
+    import rerun as rr
 
 log = logging.getLogger("mavest")
 
@@ -107,6 +107,10 @@ class Viewer:
     """A recording stream with its sinks, and the viewer process mavest started (if any)."""
 
     def __init__(self, request: ViewerRequest, application: str = "mavest") -> None:
+        # imported here: rerun-sdk takes a second to import, which a run without a
+        # viewer or a recording should not pay
+        import rerun as rr
+
         self.request = request
         self.recording = rr.RecordingStream(application)
         self.process: subprocess.Popen[bytes] | None = None
@@ -289,6 +293,8 @@ class Viewer:
         """Never call the recording again, and keep it from being dropped: rerun-sdk 0.41
         can hang for ever flushing a file writer that failed, when the recording is
         dropped or at exit (its exit hook flushes every recording)."""
+        import rerun as rr
+
         self._broken = True
         ctypes.pythonapi.Py_IncRef(ctypes.py_object(self.recording))
         rr.unregister_shutdown()
@@ -297,6 +303,8 @@ class Viewer:
 
     def add_stream(self, root: str) -> None:
         """A new IMU stream: send the default layout with its views."""
+        from mavest.viz.blueprint import blueprint
+
         self._roots.append(root)
         if self._broken:
             return

@@ -1,0 +1,466 @@
+"""Many tlog records at once: the replay's compiled fast path through MAVLink bytes.
+
+A replay spends its time per message, not per byte: pymavlink builds a Python
+object for every packet it decodes and packs, at tens of µs each. Here the
+same work is done on whole runs of records in compiled loops:
+
+* :func:`scan` indexes the records of a clean stretch of a tlog (timestamp,
+  start byte, length, known message id, valid CRC), and stops at the first
+  record that is anything else, which the careful :class:`~mavest.mavlink.tlog.TlogReader`
+  then handles. A clean log goes through here whole; damage costs only itself.
+* :func:`decode_payloads` turns the payloads of one message type into a NumPy
+  record array laid out as the message's wire format (MAVLink 2's trailing
+  zeros restored, as pymavlink does), from which IMU samples and reference
+  attitudes are read in bulk (:func:`imu_fields`, :func:`simstate_euler`).
+* :func:`attitude_packets` packs ATTITUDE and ATTITUDE_QUATERNION as pymavlink
+  would (same bytes: MAVLink 2, trailing zeros cut, CRC with the message's
+  extra byte, the encoder's sequence numbers), and :func:`interleave` lays the
+  input records and the answers out as the output tlog's records.
+
+``tests/test_bulk.py`` checks each against pymavlink on the same bytes.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from mavest import so3
+from mavest._jit import kernel
+from mavest.mavlink.messages import IMU_FORMATS, mavlink2
+
+_MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as TlogReader (and pymavlink)
+
+# CRC extra byte per message id; -1 for ids this dialect does not define.
+CRC_EXTRA = np.full(max(mavlink2.mavlink_map) + 1, -1, dtype=np.int16)
+for _id, _class in mavlink2.mavlink_map.items():
+    CRC_EXTRA[_id] = _class.crc_extra
+
+# struct format characters → NumPy (little-endian, as MAVLink's wire)
+_STRUCT_TO_NUMPY = {
+    "Q": "<u8",
+    "q": "<i8",
+    "I": "<u4",
+    "i": "<i4",
+    "H": "<u2",
+    "h": "<i2",
+    "B": "u1",
+    "b": "i1",
+    "f": "<f4",
+    "d": "<f8",
+    "c": "S1",
+}
+
+
+def wire_dtype(message_class: Any) -> np.dtype:
+    """The NumPy record type of a message's payload on the wire (fields in wire order).
+
+    Built from the message class's own ``struct`` format, so it is pymavlink's
+    layout by construction; arrays (``4f``) become sub-arrays, strings bytes.
+    """
+    fmt: str = message_class.unpacker.format
+    names: list[str] = message_class.ordered_fieldnames
+    fields: list[tuple[Any, ...]] = []
+    count = ""
+    for char in fmt.lstrip("<"):
+        if char.isdigit():
+            count += char
+            continue
+        n = int(count) if count else 1
+        count = ""
+        name = names[len(fields)]
+        if char == "s":
+            fields.append((name, f"S{n}"))
+        elif n > 1:
+            fields.append((name, _STRUCT_TO_NUMPY[char], (n,)))
+        else:
+            fields.append((name, _STRUCT_TO_NUMPY[char]))
+    dtype = np.dtype(fields)
+    assert dtype.itemsize == message_class.unpacker.size
+    return dtype
+
+
+class RecordIndex(NamedTuple):
+    """Where each record of a clean stretch is, and what it carries (arrays of one length)."""
+
+    start: np.ndarray  # int64: the record's first byte (its timestamp) in the file
+    end: np.ndarray  # int64: one past its packet's last byte
+    payload: np.ndarray  # int64: its payload's first byte
+    payload_length: np.ndarray  # int64
+    message_id: np.ndarray  # int64
+    system: np.ndarray  # int64
+    component: np.ndarray  # int64
+    stamp: np.ndarray  # int64: the record's time, µs
+
+    def __len__(self) -> int:
+        return int(self.start.shape[0])
+
+    def part(self, selection: Any) -> RecordIndex:
+        return RecordIndex(*(column[selection] for column in self))
+
+
+@kernel
+def _x25_update(crc: int, byte: int) -> int:
+    tmp = (byte ^ (crc & 0xFF)) & 0xFF
+    tmp = (tmp ^ (tmp << 4)) & 0xFF
+    return ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+
+
+@kernel
+def _scan(
+    data: np.ndarray,
+    position: int,
+    last_us: int,
+    crc_extra: np.ndarray,
+    out: np.ndarray,
+) -> tuple[int, int, int]:
+    """Index clean records from ``position`` into ``out`` (rows: the RecordIndex columns).
+
+    Stops at the first record that is not clean or at ``out``'s capacity; returns
+    (records, the position after the last, its timestamp). ``last_us`` < 0: none yet.
+    """
+    n = data.shape[0]
+    count = 0
+    capacity = out.shape[1]
+    while count < capacity and position + 9 <= n:
+        stamp = 0
+        for k in range(8):
+            stamp = (stamp << 8) | np.int64(data[position + k])
+        if stamp < 0:  # beyond int64: not a time
+            break
+        if last_us >= 0 and abs(stamp - last_us) > _MAX_TIMESTAMP_JUMP_US:
+            break
+        p = position + 8
+        stx = data[p]
+        if stx == 0xFD:
+            if p + 10 > n:
+                break
+            length = np.int64(data[p + 1])
+            signature = 13 if data[p + 2] & 1 else 0
+            header = 10
+            message_id = (
+                np.int64(data[p + 7]) | (np.int64(data[p + 8]) << 8) | (np.int64(data[p + 9]) << 16)
+            )
+            system = np.int64(data[p + 5])
+            component = np.int64(data[p + 6])
+        elif stx == 0xFE:
+            if p + 6 > n:
+                break
+            length = np.int64(data[p + 1])
+            signature = 0
+            header = 6
+            message_id = np.int64(data[p + 5])
+            system = np.int64(data[p + 3])
+            component = np.int64(data[p + 4])
+        else:
+            break
+        end = p + header + length + 2 + signature
+        if end > n or message_id >= crc_extra.shape[0] or crc_extra[message_id] < 0:
+            break
+        crc = 0xFFFF
+        for k in range(p + 1, p + header + length):
+            crc = _x25_update(crc, data[k])
+        crc = _x25_update(crc, crc_extra[message_id])
+        body = p + header + length
+        if crc != (np.int64(data[body]) | (np.int64(data[body + 1]) << 8)):
+            break
+        out[0, count] = position
+        out[1, count] = end
+        out[2, count] = p + header
+        out[3, count] = length
+        out[4, count] = message_id
+        out[5, count] = system
+        out[6, count] = component
+        out[7, count] = stamp
+        count += 1
+        position = end
+        last_us = stamp
+    return count, position, last_us
+
+
+def scan(data: np.ndarray, position: int, last_us: int, capacity: int) -> RecordIndex:
+    """The clean records from ``position`` on, at most ``capacity`` (see :func:`_scan`)."""
+    out = np.empty((8, capacity), dtype=np.int64)
+    count, _, _ = _scan(data, position, last_us, CRC_EXTRA, out)
+    return RecordIndex(*(np.ascontiguousarray(out[k, :count]) for k in range(8)))
+
+
+@kernel
+def _gather(data: np.ndarray, payload: np.ndarray, length: np.ndarray, out: np.ndarray) -> None:
+    width = out.shape[1]
+    for i in range(payload.shape[0]):
+        used = min(length[i], width)
+        start = payload[i]
+        for k in range(used):
+            out[i, k] = data[start + k]
+        for k in range(used, width):
+            out[i, k] = 0
+
+
+def decode_payloads(data: np.ndarray, records: RecordIndex, dtype: np.dtype) -> np.ndarray:
+    """The payloads of these records (all one message type) as records of ``dtype``.
+
+    As pymavlink: a payload shorter than the format (MAVLink 2 cuts trailing
+    zeros; MAVLink 1 senders omit extensions) is padded with zeros, a longer
+    one cut.
+    """
+    raw = np.empty((len(records), dtype.itemsize), dtype=np.uint8)
+    _gather(data, records.payload, records.payload_length, raw)
+    return raw.view(dtype)[:, 0]
+
+
+class ImuFields(NamedTuple):
+    """IMU messages of one type decoded in bulk, as :func:`~mavest.mavlink.messages.decode_imu`."""
+
+    ticks: np.ndarray  # int64, the raw time field
+    gyro: np.ndarray  # (n, 3) rad/s
+    accel: np.ndarray  # (n, 3) m/s²
+    mag: np.ndarray  # (n, 3) µT
+    mag_fresh: np.ndarray  # bool: the message carries a magnetometer reading
+    inertial_fresh: np.ndarray  # bool: gyro and accelerometer are new (HIGHRES_IMU's bits)
+    instance: np.ndarray  # int64
+    saturated: np.ndarray  # bool
+
+
+_HIGHRES_INERTIAL = 0b111111
+_HIGHRES_MAG = 0b111000000
+
+
+def imu_fields(name: str, payloads: np.ndarray) -> ImuFields:
+    """Decode IMU payloads of message ``name`` (one of ``IMU_FORMATS``) to SI units."""
+    fmt = IMU_FORMATS[name]
+    n = payloads.shape[0]
+
+    def axes(sensor: str, scale: float) -> np.ndarray:
+        raw = np.stack([payloads[f"{axis}{sensor}"] for axis in "xyz"], axis=1)
+        return raw.astype(np.float64) * scale
+
+    raw_inertial = [payloads[f"{axis}{sensor}"] for axis in "xyz" for sensor in ("gyro", "acc")]
+    if fmt.limits is not None:
+        low, high = fmt.limits
+        saturated = np.zeros(n, dtype=bool)
+        for values in raw_inertial:
+            saturated |= (values <= low) | (values >= high)
+    else:
+        saturated = np.zeros(n, dtype=bool)
+    if name == "HIGHRES_IMU":
+        updated = payloads["fields_updated"].astype(np.int64)
+        inertial_fresh = updated & _HIGHRES_INERTIAL == _HIGHRES_INERTIAL
+        mag_fresh = updated & _HIGHRES_MAG == _HIGHRES_MAG
+        instance = payloads["id"].astype(np.int64)
+    else:
+        inertial_fresh = np.ones(n, dtype=bool)
+        mag_fresh = np.ones(n, dtype=bool)
+        if name == "RAW_IMU":
+            instance = payloads["id"].astype(np.int64)
+        else:
+            instance = np.full(n, _SCALED_INSTANCE[name], dtype=np.int64)
+    return ImuFields(
+        payloads[fmt.time_field].astype(np.int64),
+        axes("gyro", fmt.gyro_scale),
+        axes("acc", fmt.accel_scale),
+        axes("mag", fmt.mag_scale),
+        mag_fresh,
+        inertial_fresh,
+        instance,
+        saturated,
+    )
+
+
+_SCALED_INSTANCE = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
+
+
+def simstate_euler(payloads: np.ndarray) -> np.ndarray:
+    """(n, 3) roll, pitch, yaw of SIMSTATE payloads (rad), as float64 like pymavlink's."""
+    return np.stack([payloads[name] for name in ("roll", "pitch", "yaw")], axis=1).astype(
+        np.float64
+    )
+
+
+_ATTITUDE = mavlink2.MAVLink_attitude_message
+_ATTITUDE_QUATERNION = mavlink2.MAVLink_attitude_quaternion_message
+ATTITUDE_DTYPE = wire_dtype(_ATTITUDE)
+ATTITUDE_QUATERNION_DTYPE = wire_dtype(_ATTITUDE_QUATERNION)
+
+
+@kernel
+def _pack(
+    payloads: np.ndarray,
+    message_id: int,
+    crc_extra: int,
+    system: int,
+    component: int,
+    first_seq: int,
+    seq_step: int,
+    out: np.ndarray,
+    out_length: np.ndarray,
+) -> None:
+    """MAVLink 2 packets of these payloads, as pymavlink packs (trailing zeros cut)."""
+    for i in range(payloads.shape[0]):
+        length = payloads.shape[1]
+        while length > 1 and payloads[i, length - 1] == 0:
+            length -= 1
+        row = out[i]
+        row[0] = 0xFD
+        row[1] = length
+        row[2] = 0
+        row[3] = 0
+        row[4] = (first_seq + i * seq_step) & 0xFF
+        row[5] = system
+        row[6] = component
+        row[7] = message_id & 0xFF
+        row[8] = (message_id >> 8) & 0xFF
+        row[9] = (message_id >> 16) & 0xFF
+        for k in range(length):
+            row[10 + k] = payloads[i, k]
+        crc = 0xFFFF
+        for k in range(1, 10 + length):
+            crc = _x25_update(crc, row[k])
+        crc = _x25_update(crc, crc_extra)
+        row[10 + length] = crc & 0xFF
+        row[11 + length] = crc >> 8
+        out_length[i] = 12 + length
+
+
+@kernel
+def _euler_rows(q: np.ndarray, out: np.ndarray) -> None:
+    for i in range(q.shape[0]):
+        so3.euler_zyx_from_quat_into(q[i], out[i])
+
+
+def euler_rows(q: np.ndarray) -> np.ndarray:
+    """(n, 3) ZYX angles of (n, 4) quaternions, by the very function the estimate uses."""
+    out = np.empty((q.shape[0], 3))
+    _euler_rows(np.ascontiguousarray(q), out)
+    return out
+
+
+class Packets(NamedTuple):
+    """Packets of equal capacity, one per row, each ``length`` bytes long."""
+
+    data: np.ndarray  # (n, capacity) uint8
+    length: np.ndarray  # (n,) int64
+
+
+def attitude_packets(
+    time_boot_ms: np.ndarray,
+    euler: np.ndarray,
+    rates: np.ndarray,
+    q: np.ndarray | None,
+    system: int,
+    component: int,
+    first_seq: int,
+) -> tuple[Packets, Packets | None]:
+    """ATTITUDE (and ATTITUDE_QUATERNION if ``q`` is given) for each row.
+
+    Sequence numbers go on from ``first_seq`` as the encoder hands them out:
+    ATTITUDE then ATTITUDE_QUATERNION per sample, or ATTITUDE alone.
+    """
+    n = time_boot_ms.shape[0]
+    step = 2 if q is not None else 1
+    attitude = np.zeros(n, dtype=ATTITUDE_DTYPE)
+    attitude["time_boot_ms"] = time_boot_ms
+    for k, name in enumerate(("roll", "pitch", "yaw")):
+        attitude[name] = euler[:, k]
+    for k, name in enumerate(("rollspeed", "pitchspeed", "yawspeed")):
+        attitude[name] = rates[:, k]
+    first = _packed(attitude, _ATTITUDE, system, component, first_seq, step)
+    if q is None:
+        return first, None
+    quaternion = np.zeros(n, dtype=ATTITUDE_QUATERNION_DTYPE)
+    quaternion["time_boot_ms"] = time_boot_ms
+    for k, name in enumerate(("q1", "q2", "q3", "q4")):
+        quaternion[name] = q[:, k]
+    for k, name in enumerate(("rollspeed", "pitchspeed", "yawspeed")):
+        quaternion[name] = rates[:, k]
+    second = _packed(quaternion, _ATTITUDE_QUATERNION, system, component, first_seq + 1, step)
+    return first, second
+
+
+def _packed(
+    payloads: np.ndarray, message_class: Any, system: int, component: int, seq: int, step: int
+) -> Packets:
+    raw = payloads.view(np.uint8).reshape(payloads.shape[0], payloads.dtype.itemsize)
+    n, width = raw.shape
+    out = np.empty((n, width + 12), dtype=np.uint8)
+    length = np.empty(n, dtype=np.int64)
+    _pack(raw, message_class.id, message_class.crc_extra, system, component, seq, step, out, length)
+    return Packets(out, length)
+
+
+@kernel
+def _interleave(
+    data: np.ndarray,
+    start: np.ndarray,
+    end: np.ndarray,
+    stamp: np.ndarray,
+    answer_of: np.ndarray,
+    first_packets: np.ndarray,
+    first_length: np.ndarray,
+    second_packets: np.ndarray,
+    second_length: np.ndarray,
+    out: np.ndarray,
+    out_ends: np.ndarray,
+) -> int:
+    """Copy each input record; after one answered, its packets as records of its time."""
+    position = 0
+    records = 0
+    for i in range(start.shape[0]):
+        for k in range(start[i], end[i]):
+            out[position] = data[k]
+            position += 1
+        out_ends[records] = position
+        records += 1
+        a = answer_of[i]
+        if a < 0:
+            continue
+        for packets, lengths in ((first_packets, first_length), (second_packets, second_length)):
+            if lengths.shape[0] == 0:
+                continue
+            s = stamp[i]
+            for k in range(8):
+                out[position + k] = (s >> (8 * (7 - k))) & 0xFF
+            position += 8
+            for k in range(lengths[a]):
+                out[position + k] = packets[a, k]
+            position += lengths[a]
+            out_ends[records] = position
+            records += 1
+    return records
+
+
+def interleave(
+    data: np.ndarray,
+    records: RecordIndex,
+    answer_of: np.ndarray,
+    first: Packets,
+    second: Packets | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The output tlog's bytes for these records: each input record as it was, each
+    answered one (``answer_of[i]`` ≥ 0: its row in the packets) followed by its
+    answers stamped with its time. Returns (bytes, the end of each record in them)."""
+    answered = int((answer_of >= 0).sum())
+    per_answer = 1 if second is None else 2
+    if second is None:
+        second = Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
+    size = int((records.end - records.start).sum()) + answered * 8 * per_answer
+    size += int(first.length[answer_of[answer_of >= 0]].sum())
+    size += int(second.length[answer_of[answer_of >= 0]].sum()) if per_answer == 2 else 0
+    out = np.empty(size, dtype=np.uint8)
+    ends = np.empty(len(records) + answered * per_answer, dtype=np.int64)
+    count = _interleave(
+        data,
+        records.start,
+        records.end,
+        records.stamp,
+        answer_of,
+        first.data,
+        first.length,
+        second.data,
+        second.length,
+        out,
+        ends,
+    )
+    assert count == ends.shape[0]
+    return out, ends

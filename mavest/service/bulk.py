@@ -1,0 +1,765 @@
+"""The replay's fast path: runs of clean tlog records through the pipeline at once.
+
+:class:`~mavest.service.pipeline.Pipeline` takes one message at a time, which
+is what a live link gives; a replay has the whole file and pays pymavlink's
+tens of µs per message for nothing. :class:`BulkFeed` does what the pipeline
+would do for the records of a clean stretch (:meth:`TlogReader.scan`), with the
+same state (streams, clocks, estimators, comparisons, encoders' sequence
+numbers, the output tlog, the Rerun recorder), in compiled loops over arrays:
+
+* IMU samples of the stream being estimated are decoded in bulk, and a
+  stretch of them that the pipeline would take plainly (valid values, the
+  clock's plain next sample, no airspeed correction, which needs the bias
+  sample by sample) goes through :meth:`Estimator.update_batch`. The GPS and
+  airspeed messages among them are followed on a copy of the vehicle's aiding
+  state to give each sample the inputs the pipeline would give it;
+* a step after which those inputs may change (heading set or lost, a
+  re-initialisation) ends the batch: the samples after it are taken again;
+* SIMSTATE truth goes into the comparison with the estimates, in order; GPS,
+  airspeed and the autopilot's ATTITUDE go through :meth:`Pipeline.on_message`
+  in their place between the steps;
+* the answers are packed in bulk and written with the input records, each
+  after its IMU record, as the pipeline writes them;
+* anything else (a sample the clock or the checks single out, a new stream,
+  HEARTBEAT, PARAM_VALUE, …) is one record through :meth:`Pipeline.on_message`,
+  decoded by pymavlink, where it stands.
+
+So the outcome is the pipeline's, byte for byte: ``tests/test_bulk.py``
+replays files both ways (clean and damaged, rebooting, with GPS, airspeed,
+magnetometer and truth, the shared real tlogs) and compares the output tlogs,
+every counter and the recordings.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from mavest.estimator.layout import StepFlags
+from mavest.evaluation.online import ESTIMATE, REFERENCE
+from mavest.mavlink import bulk
+from mavest.mavlink.messages import IMU_FORMATS, IMU_MESSAGES, MAVLink, StreamKey, mavlink2
+from mavest.mavlink.tlog import TlogWriter
+from mavest.service.aiding import AIRSPEED_MAX_AGE, GPS_FIX_MAX_AGE, GPS_MAX_AGE
+from mavest.service.pipeline import (
+    _HEADING_EVENTS,
+    _HEALTH_EVENTS,
+    MAG_WAIT,
+    MAX_ACCEL,
+    MAX_GYRO,
+    MAX_MAG,
+    Pipeline,
+    Stream,
+    Vehicle,
+    _reject,
+    _report_heading,
+    _report_health,
+    _report_realigned,
+)
+
+# What a record is to the pipeline (by message id).
+PASSIVE = 0  # not decoded: copied to the output tlog only
+IMU = 1
+TRUTH = 2  # SIMSTATE
+# Decoded and handled where it stands, between bulk steps: GPS, airspeed and the
+# autopilot's attitude change only the aiding state and the comparison, which the
+# fast path follows (a copy of the aiding state decides each sample's inputs).
+INLINE = 3
+OTHER = 4  # decoded and handled one at a time, ending the stretch
+
+_INLINE_MESSAGES = ("GLOBAL_POSITION_INT", "GPS_RAW_INT", "VFR_HUD", "ATTITUDE")
+_AIDING_IDS = np.array(
+    [getattr(mavlink2, f"MAVLINK_MSG_ID_{name}") for name in _INLINE_MESSAGES[:3]]
+)
+_ATTITUDE = mavlink2.MAVLINK_MSG_ID_ATTITUDE
+
+_SIMSTATE = mavlink2.MAVLINK_MSG_ID_SIMSTATE
+_IMU_IDS = {getattr(mavlink2, f"MAVLINK_MSG_ID_{name}"): name for name in IMU_MESSAGES}
+_SIMSTATE_DTYPE = bulk.wire_dtype(mavlink2.mavlink_map[_SIMSTATE])
+_IMU_DTYPES = {
+    message_id: bulk.wire_dtype(mavlink2.mavlink_map[message_id]) for message_id in _IMU_IDS
+}
+
+# A step with one of these may change whether heading is referenced (and so whether
+# GPS aiding applies to the next sample): a batch is cut after it.
+_REGIME_EVENTS = (
+    StepFlags.INITIALISED
+    | StepFlags.GAP_REALIGNED
+    | StepFlags.HEADING_ALIGNED
+    | StepFlags.HEADING_REOPENED
+    | StepFlags.MAG_REFERENCE_CHANGED
+    | StepFlags.TILT_REOPENED
+    | StepFlags.UNHEALTHY_RESET
+    | StepFlags.DIVERGED
+    | StepFlags.SKIPPED
+)
+
+
+def record_kinds(wanted: frozenset[int]) -> np.ndarray:
+    """Per message id, what the pipeline does with it (PASSIVE … OTHER)."""
+    kinds = np.zeros(bulk.CRC_EXTRA.shape[0], dtype=np.int8)
+    for message_id in wanted:
+        kinds[message_id] = OTHER
+    for name in _INLINE_MESSAGES:
+        message_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}")
+        if message_id in wanted:
+            kinds[message_id] = INLINE
+    for message_id in _IMU_IDS:
+        kinds[message_id] = IMU
+    if _SIMSTATE in wanted:
+        kinds[_SIMSTATE] = TRUTH
+    return kinds
+
+
+def usable(pipeline: Pipeline) -> bool:
+    """Whether the fast path gives this pipeline's outcome: every sink takes estimates
+    in bulk too (the Rerun recorder does), nothing is signed, nothing is sent on a link."""
+    return (
+        all(hasattr(sink, "on_estimates") for sink in pipeline.sinks)
+        and pipeline.signing is None
+        and not pipeline.links
+    )
+
+
+class _Decoded:
+    """The IMU and SIMSTATE records of a run, decoded, one row per record of the run."""
+
+    def __init__(self, data: np.ndarray, records: bulk.RecordIndex, kinds: np.ndarray) -> None:
+        n = len(records)
+        self.kind = kinds[records.message_id]
+        self.gyro = np.empty((n, 3))
+        self.accel = np.empty((n, 3))
+        self.mag = np.empty((n, 3))
+        self.ticks = np.zeros(n, dtype=np.int64)
+        self.tick = np.zeros(n)
+        self.mag_fresh = np.zeros(n, dtype=bool)
+        self.inertial_fresh = np.zeros(n, dtype=bool)
+        self.saturated = np.zeros(n, dtype=bool)
+        self.instance = np.zeros(n, dtype=np.int64)
+        self.truth = np.empty((n, 3))
+        for message_id, name in _IMU_IDS.items():
+            rows = np.flatnonzero(records.message_id == message_id)
+            if not rows.shape[0]:
+                continue
+            payloads = bulk.decode_payloads(data, records.part(rows), _IMU_DTYPES[message_id])
+            fields = bulk.imu_fields(name, payloads)
+            self.ticks[rows] = fields.ticks
+            self.tick[rows] = IMU_FORMATS[name].time_scale
+            self.gyro[rows] = fields.gyro
+            self.accel[rows] = fields.accel
+            self.mag[rows] = fields.mag
+            self.mag_fresh[rows] = fields.mag_fresh
+            self.inertial_fresh[rows] = fields.inertial_fresh
+            self.saturated[rows] = fields.saturated
+            self.instance[rows] = fields.instance
+        rows = np.flatnonzero(self.kind == TRUTH)
+        if rows.shape[0]:
+            payloads = bulk.decode_payloads(data, records.part(rows), _SIMSTATE_DTYPE)
+            self.truth[rows] = bulk.simstate_euler(payloads)
+
+
+# What the pipeline does with an IMU record, by its stream.
+_ESTIMATED = 0  # the stream estimated in bulk
+_PASSED_BY = 1  # a stream not followed (or a HIGHRES_IMU without fresh data): nothing
+_ALONE = 2  # a new stream, another system, a second followed stream: one at a time
+
+
+class _Steps:
+    """Samples estimated in bulk: their rows in the run and what the estimator gave."""
+
+    def __init__(
+        self,
+        rows: np.ndarray,
+        series: Any,
+        usable_mag: np.ndarray,
+        gyro: np.ndarray,
+        accel: np.ndarray,
+        processing: float,
+    ) -> None:
+        self.rows = rows
+        self.series = series
+        self.accel = accel  # as the sample carried it (for the recording)
+        self.processing = processing  # s per sample: the batch's time divided among them
+        self.t = series.t
+        self.q = series.q
+        self.bias = series.bias
+        self.flags = series.flags
+        self.mag_used = series.mag_used & usable_mag
+        self.usable_mag = usable_mag
+        self.gyro = gyro  # for the answers' rates
+
+    def before(self, row: int) -> slice:
+        """The steps whose records come before ``row``."""
+        return slice(0, int(np.searchsorted(self.rows, row)))
+
+
+class BulkFeed:
+    """Feeds runs of clean records to a pipeline, as the replay would one by one."""
+
+    def __init__(
+        self,
+        pipeline: Pipeline,
+        data: np.ndarray,
+        wanted: frozenset[int],
+        tlog: TlogWriter | None,
+        after_stretch: Callable[[], None] | None = None,
+    ) -> None:
+        self.pipeline = pipeline
+        self.data = data
+        self.tlog = tlog
+        # called after each stretch taken in bulk, as the replay loop calls its checks
+        # (the recording's disk space) every few hundred records
+        self.after_stretch = after_stretch
+        self.kinds = record_kinds(wanted)  # per message id: PASSIVE … OTHER
+        self._mav = MAVLink(None)  # decodes the records handled one at a time
+        self.bulk_samples = 0  # IMU samples estimated in bulk (for the tests)
+        self._decoded: dict[int, Any] = {}  # row → message, within one feed
+
+    def feed(self, records: bulk.RecordIndex) -> None:
+        """Handle these records (clean, in file order) as the replay loop would."""
+        decoded = _Decoded(self.data, records, self.kinds)
+        self._decoded.clear()
+        cuts = np.flatnonzero(decoded.kind == OTHER)
+        start = 0
+        while start < len(records):
+            start = self._run(records, decoded, cuts, start)
+
+    # ---------------------------------------------------------------- one run
+
+    def _run(
+        self, records: bulk.RecordIndex, decoded: _Decoded, cuts: np.ndarray, start: int
+    ) -> int:
+        """Handle records from ``start``: a stretch in bulk, or one record alone.
+        Returns where the next run starts."""
+        following = int(np.searchsorted(cuts, start))
+        end = int(cuts[following]) if following < cuts.shape[0] else len(records)
+        imu_rows = start + np.flatnonzero(decoded.kind[start:end] == IMU)
+        status, stream = self._imu_status(records, decoded, imu_rows)
+        alone = imu_rows[status == _ALONE]
+        if alone.shape[0]:
+            end = int(alone[0])
+        end = self._truth_end(records, decoded, start, end, stream)
+        if end == start:
+            self._alone(records, start)
+            return start + 1
+        rows = imu_rows[(imu_rows < end) & (status == _ESTIMATED)]
+        if stream is None or not rows.shape[0]:
+            self._take(records, decoded, start, end, stream)
+            return end
+        return self._estimate(records, decoded, start, end, rows, stream)
+
+    def _imu_status(
+        self, records: bulk.RecordIndex, decoded: _Decoded, rows: np.ndarray
+    ) -> tuple[np.ndarray, Stream | None]:
+        """Per IMU record, what the pipeline does with it; the stream estimated in bulk."""
+        status = np.full(rows.shape[0], _ALONE, dtype=np.int8)
+        if not rows.shape[0]:
+            return status, None
+        pipeline = self.pipeline
+        # one integer per (system, component, message, instance)
+        code = (
+            (records.system[rows] << 40)
+            | (records.component[rows] << 32)
+            | (records.message_id[rows] << 8)
+            | (decoded.instance[rows] & 0xFF)
+        )
+        fresh = decoded.inertial_fresh[rows]
+        stream: Stream | None = None
+        for value in np.unique(code).tolist():
+            key = StreamKey(
+                (value >> 40) & 0xFF,
+                (value >> 32) & 0xFF,
+                _IMU_IDS[(value >> 8) & 0xFFFFFF],
+                value & 0xFF,
+            )
+            if not pipeline._follows(key.system):
+                continue  # counted and said by the pipeline: alone
+            mine = code == value
+            # a HIGHRES_IMU without fresh gyro and accelerometer is passed by first of all
+            status[mine & ~fresh] = _PASSED_BY
+            mine &= fresh
+            known = pipeline.streams.get(key)
+            if known is not None and (stream is None or known is stream):
+                stream = known
+                status[mine] = _ESTIMATED
+            elif known is None and key in pipeline._not_followed:
+                status[mine] = _PASSED_BY
+        return status, stream
+
+    def _truth_end(
+        self,
+        records: bulk.RecordIndex,
+        decoded: _Decoded,
+        start: int,
+        end: int,
+        stream: Stream | None,
+    ) -> int:
+        """``end``, or the first SIMSTATE before it that is not the bulk stream's truth."""
+        truth_rows = start + np.flatnonzero(decoded.kind[start:end] == TRUTH)
+        if not truth_rows.shape[0]:
+            return end
+        pipeline = self.pipeline
+        foreign = np.ones(truth_rows.shape[0], dtype=bool)
+        if stream is not None and stream.primary:
+            for system in np.unique(records.system[truth_rows]).tolist():
+                # the vehicle a SIMSTATE is for, as Pipeline.on_message finds it
+                vehicle = pipeline.vehicles.get((system, 1)) or pipeline._any_vehicle(system)
+                if vehicle is not None and vehicle.primary == stream.key:
+                    foreign[records.system[truth_rows] == system] = False
+        if foreign.any():
+            return int(truth_rows[np.argmax(foreign)])
+        return end
+
+    def _packet(self, records: bulk.RecordIndex, row: int) -> bytes:
+        return self.data[int(records.start[row]) + 8 : int(records.end[row])].tobytes()
+
+    def _decode(self, records: bulk.RecordIndex, row: int) -> Any:
+        """The message of a record handled by pymavlink (each decoded once per feed)."""
+        message = self._decoded.get(row)
+        if message is None:
+            message = self._decoded[row] = self._mav.decode(bytearray(self._packet(records, row)))
+        return message
+
+    def _alone(self, records: bulk.RecordIndex, row: int) -> None:
+        """One record the way the replay loop takes it: written, decoded, handled."""
+        stamp = int(records.stamp[row])
+        if self.tlog is not None:
+            self.tlog.write(stamp, self._packet(records, row))
+        self.pipeline.on_message(self._decode(records, row), stamp)
+
+    # ---------------------------------------------------------------- estimation
+
+    def _estimate(
+        self,
+        records: bulk.RecordIndex,
+        decoded: _Decoded,
+        start: int,
+        end: int,
+        rows: np.ndarray,
+        stream: Stream,
+    ) -> int:
+        """Estimate the leading plain samples of ``rows`` in bulk, or let the first go
+        alone if it is not plain. Returns where the next run starts."""
+        began = time.perf_counter()
+        gyro, accel = decoded.gyro[rows], decoded.accel[rows]
+        # as Pipeline._estimate's checks (written to fail on NaN too)
+        valid = (
+            (np.abs(gyro) <= MAX_GYRO).all(axis=1)
+            & (np.abs(accel) <= MAX_ACCEL).all(axis=1)
+            & ~decoded.saturated[rows]
+            & (accel != 0.0).any(axis=1)
+        )
+        plain = int(np.argmin(valid)) if not valid.all() else rows.shape[0]
+        tick = float(decoded.tick[rows[0]])
+        ticks = decoded.ticks[rows[:plain]]
+        t = stream.clock.read_run(ticks, tick)
+        linear_accel, needs_airspeed = self._aiding(records, decoded, start, stream, rows, t)
+        count = int(np.argmax(needs_airspeed)) if needs_airspeed.any() else t.shape[0]
+        if count == 0:  # records before the sample in bulk, the sample alone
+            first = int(rows[0])
+            self._take(records, decoded, start, first, stream)
+            self._alone(records, first)
+            return first + 1
+        mag = decoded.mag[rows[:count]]
+        usable_mag = (
+            decoded.mag_fresh[rows[:count]]
+            & (mag != 0.0).any(axis=1)
+            & (np.abs(mag) <= MAX_MAG).all(axis=1)
+        )
+        mag[~usable_mag] = math.nan
+        series, count = self._update(
+            stream, t[:count], gyro[:count], accel[:count], mag, linear_accel[:count]
+        )
+        stream.clock.take_run(ticks, tick, count)
+        self.bulk_samples += count
+        stop = int(rows[count]) if count < rows.shape[0] else end
+        processing = (time.perf_counter() - began) / count
+        steps = _Steps(
+            rows[:count], series, usable_mag[:count], gyro[:count], accel[:count], processing
+        )
+        self._take(records, decoded, start, stop, stream, steps)
+        return stop
+
+    def _update(
+        self,
+        stream: Stream,
+        t: np.ndarray,
+        gyro: np.ndarray,
+        accel: np.ndarray,
+        mag: np.ndarray,
+        linear_accel: np.ndarray,
+    ) -> tuple[Any, int]:
+        """Run the estimator over the samples, up to and including the first whose step
+        may change what the next sample's inputs are (whether GPS aiding applies)."""
+        estimator = stream.estimator
+        before = estimator._state.copy()
+        series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
+        events = np.flatnonzero(series.flags[:-1] & _REGIME_EVENTS)
+        if not events.shape[0]:
+            return series, t.shape[0]
+        count = int(events[0]) + 1  # the steps after it took inputs decided too early
+        estimator._state[...] = before
+        series = estimator.update_batch(
+            t[:count], gyro[:count], accel[:count], mag[:count], linear_accel[:count]
+        )
+        return series, count
+
+    def _aiding(
+        self,
+        records: bulk.RecordIndex,
+        decoded: _Decoded,
+        start: int,
+        stream: Stream,
+        rows: np.ndarray,
+        t: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per sample, the known acceleration (NaN rows: none) and whether the airspeed
+        correction applies, as the pipeline would decide them: GPS and airspeed
+        messages among the samples are followed on a copy of the vehicle's state."""
+        pipeline = self.pipeline
+        vehicle = pipeline.vehicles[(stream.key.system, stream.key.component)]
+        n = t.shape[0]
+        linear_accel = np.full((n, 3), math.nan)
+        needs_airspeed = np.zeros(n, dtype=bool)
+        end = int(rows[n - 1]) if n else start
+        inline = start + np.flatnonzero(decoded.kind[start:end] == INLINE)
+        mine = (
+            (records.system[inline] == vehicle.system)
+            & (records.component[inline] == vehicle.component)
+            & np.isin(records.message_id[inline], _AIDING_IDS)
+        )
+        state = copy.copy(vehicle)
+        state.gps = copy.copy(vehicle.gps)
+        done = 0
+        for row in inline[mine].tolist():
+            upto = int(np.searchsorted(rows[:n], row))
+            self._decide_aiding(stream, state, t, done, upto, linear_accel, needs_airspeed)
+            done = upto
+            last_t = float(t[upto - 1]) if upto else vehicle.last_t
+            if last_t is not None:
+                _follow(state, self._decode(records, row), last_t)
+        self._decide_aiding(stream, state, t, done, n, linear_accel, needs_airspeed)
+        return linear_accel, needs_airspeed
+
+    def _decide_aiding(
+        self,
+        stream: Stream,
+        vehicle: Vehicle,
+        t: np.ndarray,
+        start: int,
+        stop: int,
+        linear_accel: np.ndarray,
+        needs_airspeed: np.ndarray,
+    ) -> None:
+        """Samples [start, stop): the pipeline's ``_gps_acceleration`` and
+        ``_uses_airspeed`` with this vehicle state."""
+        if stop <= start:
+            return
+        times = t[start:stop]
+        mode = self.pipeline.config.input.acceleration_aiding
+        gps = vehicle.gps
+        if mode in ("auto", "gps") and stream.estimator.heading_referenced and gps.accel:
+            since_fix = times - gps.fix_t
+            since_accel = times - gps.accel_t
+            fresh = (
+                (since_fix >= 0.0)
+                & (since_fix <= GPS_FIX_MAX_AGE)
+                & (since_accel >= 0.0)
+                & (since_accel <= GPS_MAX_AGE)
+            )
+            linear_accel[start:stop][fresh] = gps.accel
+        if mode in ("off", "gps") or (mode == "auto" and not vehicle.fixed_wing):
+            return
+        since = times - vehicle.airspeed_t
+        unknown = np.isnan(linear_accel[start:stop, 0])
+        needs_airspeed[start:stop] = unknown & (since >= 0.0) & (since <= AIRSPEED_MAX_AGE)
+
+    # ---------------------------------------------------------------- the outcome
+
+    def _take(
+        self,
+        records: bulk.RecordIndex,
+        decoded: _Decoded,
+        start: int,
+        stop: int,
+        stream: Stream | None,
+        steps: _Steps | None = None,
+    ) -> None:
+        """Records [start, stop) as the pipeline takes them, in order: the steps booked
+        and compared with the truth between them, each GPS, airspeed or autopilot
+        attitude message handled where it stands; then the answers packed and all of
+        it written to the output tlog."""
+        if stop <= start:
+            return
+        pipeline = self.pipeline
+        kind = decoded.kind[start:stop]
+        inline = start + np.flatnonzero(kind == INLINE)
+        # The steps are booked and compared up to each autopilot ATTITUDE, which is
+        # compared with them; a GPS or airspeed message needs only the vehicle's time.
+        splits = inline[records.message_id[inline] == _ATTITUDE]
+        vehicle = (
+            pipeline.vehicles[(stream.key.system, stream.key.component)]
+            if stream is not None
+            else None
+        )
+        estimated_at = (
+            np.flatnonzero((steps.flags & StepFlags.SKIPPED) == 0)
+            if steps is not None
+            else np.empty(0, dtype=np.int64)
+        )
+        taken = start
+        estimated: list[np.ndarray] = []
+        done = 0  # steps booked
+        last_t = vehicle.last_t if vehicle is not None else None  # as of the steps booked
+        for row in [*inline.tolist(), stop]:
+            if stream is not None and (row == stop or row in splits):
+                upto = steps.before(row).stop if steps is not None else 0
+                kept = self._book_and_compare(
+                    records, decoded, taken, row, stream, steps, done, upto, last_t
+                )
+                if kept is not None:
+                    estimated.append(done + kept)
+                done = upto
+                taken = row + 1
+                last_t = vehicle.last_t if vehicle is not None else None
+            if row == stop:
+                break
+            if vehicle is not None and steps is not None:
+                # vehicle.last_t as the pipeline has it here: its last estimate's time
+                before = int(np.searchsorted(estimated_at, steps.before(row).stop)) - 1
+                if before >= 0:
+                    vehicle.last_t = float(steps.t[estimated_at[before]])
+            pipeline.on_message(self._decode(records, row), int(records.stamp[row]))
+        pipeline.messages_in += int((kind == IMU).sum() + (kind == TRUTH).sum())
+        # the time packets sent now are recorded at: the last decoded message's
+        decoded_rows = np.flatnonzero(kind != PASSIVE)
+        if decoded_rows.shape[0]:
+            pipeline._record_us = int(records.stamp[start + decoded_rows[-1]])
+        answer_of = np.full(stop - start, -1, dtype=np.int64)
+        answers: tuple[bulk.Packets, bulk.Packets | None] | None = None
+        if stream is not None and steps is not None and stream.primary and estimated:
+            kept = np.concatenate(estimated)
+            answered = kept[self._answered(stream, steps.t[kept])]
+            if answered.shape[0]:
+                answers = self._answers(stream, steps, answered)
+                answer_of[steps.rows[answered] - start] = np.arange(answered.shape[0])
+        if self.tlog is not None:
+            if answers is None:
+                empty = bulk.Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
+                answers = (empty, None)
+            data, ends = bulk.interleave(
+                self.data, records.part(slice(start, stop)), answer_of, *answers
+            )
+            self.tlog.write_records(data, ends)
+        if self.after_stretch is not None:
+            self.after_stretch()
+
+    def _book_and_compare(
+        self,
+        records: bulk.RecordIndex,
+        decoded: _Decoded,
+        start: int,
+        stop: int,
+        stream: Stream,
+        steps: _Steps | None,
+        first: int,
+        last: int,
+        last_t_before: float | None,
+    ) -> np.ndarray | None:
+        """Steps [first, last) (those of records [start, stop)) booked, and compared
+        with the truth among the records (``last_t_before``: the vehicle's time before
+        them); their estimated indices, from ``first``."""
+        vehicle = self.pipeline.vehicles[(stream.key.system, stream.key.component)]
+        vehicle.last_t = last_t_before
+        kept = None
+        index = np.empty(0, dtype=np.int64)
+        if steps is not None and last > first:
+            kept = self._book(stream, vehicle, steps, first, last)
+            index = first + kept
+        t = steps.t[index] if steps is not None else np.empty(0)
+        euler = bulk.euler_rows(steps.q[index]) if steps is not None else np.empty((0, 3))
+        rows = steps.rows[index] if steps is not None else index
+        truth_rows = start + np.flatnonzero(decoded.kind[start:stop] == TRUTH)
+        truth_t = self._compare(stream, decoded, t, euler, rows, truth_rows, last_t_before)
+        sinks = self.pipeline.sinks
+        if sinks and steps is not None and index.shape[0]:
+            series = steps.series
+            for sink in sinks:
+                sink.on_estimates(
+                    stream,
+                    t,
+                    euler,
+                    steps.gyro[index],
+                    steps.accel[index],
+                    series.accel_used[index],
+                    steps.flags[index],
+                    steps.q[index],
+                    lambda i: series[int(index[i])],
+                    records.stamp[rows],
+                    steps.processing,
+                )
+        if sinks and stream.primary:
+            compared = ~np.isnan(truth_t)
+            for sink in sinks:
+                sink.on_references(
+                    stream,
+                    "truth",
+                    truth_t[compared],
+                    decoded.truth[truth_rows[compared]],
+                    records.stamp[truth_rows[compared]],
+                )
+        return kept
+
+    def _book(
+        self, stream: Stream, vehicle: Vehicle, steps: _Steps, first: int, last: int
+    ) -> np.ndarray:
+        """Count and report what steps [first, last) did, as Pipeline._step does sample by
+        sample; returns the indices (from ``first``) of those estimated (not skipped)."""
+        stats = stream.stats
+        flags = steps.flags[first:last]
+        t = steps.t[first:last]
+        stats.received += flags.shape[0]
+        skipped = (flags & StepFlags.SKIPPED) != 0
+        kept = np.flatnonzero(~skipped)
+        # the rare samples that are news, in order, with the counters as they stood
+        notable = skipped | ((flags & (StepFlags.GAP_REALIGNED | _HEALTH_EVENTS)) != 0)
+        notable |= (flags & _HEADING_EVENTS) != 0
+        if not stream.heading_source_reported and kept.shape[0]:
+            first_t = stats.first_t if stats.first_t is not None else float(t[kept[0]])
+            due = kept[t[kept] - first_t >= MAG_WAIT]
+            if due.shape[0]:
+                notable[due[0]] = True
+        last_t = stats.last_t
+        for index in np.flatnonzero(notable).tolist():
+            f = int(flags[index])
+            if f & StepFlags.SKIPPED:
+                _reject(stream, "skipped by the estimator: " + ", ".join(StepFlags.describe(f)))
+                continue
+            earlier = kept[kept < index]
+            stats.last_t = float(t[earlier[-1]]) if earlier.shape[0] else last_t
+            ti = float(t[index])
+            if f & StepFlags.GAP_REALIGNED:
+                _report_realigned(stream, ti)
+            if f & _HEALTH_EVENTS:
+                _report_health(stream, f, ti)
+            if stats.first_t is None:
+                stats.first_t = ti
+            stats.last_t = ti
+            if f & _HEADING_EVENTS or not stream.heading_source_reported:
+                _report_heading(stream, f)
+        stats.last_t = last_t
+        if not kept.shape[0]:
+            return kept
+        stats.estimated += kept.shape[0]
+        stats.gps_aided += int(np.count_nonzero(flags[kept] & StepFlags.ACCEL_AIDED))
+        if stats.first_t is None:
+            stats.first_t = float(t[kept[0]])
+        stats.last_t = float(t[kept[-1]])
+        stats.mag_samples += int(np.count_nonzero(steps.usable_mag[first:last][kept]))
+        stats.mag_used += int(np.count_nonzero(steps.mag_used[first:last][kept]))
+        vehicle.last_t = stats.last_t
+        return kept
+
+    def _compare(
+        self,
+        stream: Stream,
+        decoded: _Decoded,
+        t: np.ndarray,
+        euler: np.ndarray,
+        rows: np.ndarray,
+        truth_rows: np.ndarray,
+        last_t_before: float | None,
+    ) -> np.ndarray:
+        """Our estimates (at ``rows``), and the SIMSTATE truth between them, into the
+        comparisons in the order they came; each truth at the time of the last estimate
+        before it, which is returned (NaN: none yet, so not compared)."""
+        if t.shape[0]:
+            stream.vs_autopilot.add_many(np.full(t.shape[0], ESTIMATE), t, euler)
+        if not truth_rows.shape[0]:
+            if t.shape[0]:
+                stream.vs_truth.add_many(np.full(t.shape[0], ESTIMATE), t, euler)
+            return np.empty(0)
+        # a truth record after its sample's record: estimates first at equal places
+        sort = np.argsort(np.concatenate([rows, truth_rows]), kind="stable")
+        kinds = np.concatenate(
+            [np.full(t.shape[0], ESTIMATE), np.full(truth_rows.shape[0], REFERENCE)]
+        )[sort]
+        euler_all = np.concatenate([euler, decoded.truth[truth_rows]])[sort]
+        times = np.concatenate([t, np.full(truth_rows.shape[0], math.nan)])[sort]
+        times = _times_of_references(times, kinds, last_t_before)
+        use = ~np.isnan(times)  # truth before any estimate of the vehicle: not compared
+        stream.vs_truth.add_many(kinds[use], times[use], euler_all[use])
+        truth_t = np.empty(truth_rows.shape[0])
+        truth_t[sort[sort >= t.shape[0]] - t.shape[0]] = times[kinds == REFERENCE]
+        return truth_t
+
+    def _answered(self, stream: Stream, t: np.ndarray) -> np.ndarray:
+        """Which of these estimates the pipeline answers (``output.attitude_rate``)."""
+        rate = self.pipeline.config.output.attitude_rate
+        if rate <= 0.0:
+            return np.arange(t.shape[0])
+        period = 1.0 / rate
+        chosen = []
+        next_output = stream.next_output
+        for i, ti in enumerate(t.tolist()):
+            if ti >= next_output:
+                chosen.append(i)
+                next_output = max(next_output + period, ti + 0.5 * period)
+        stream.next_output = next_output
+        return np.array(chosen, dtype=np.int64)
+
+    def _answers(
+        self, stream: Stream, steps: _Steps, answered: np.ndarray
+    ) -> tuple[bulk.Packets, bulk.Packets | None]:
+        """ATTITUDE (and ATTITUDE_QUATERNION) for the answered samples, as
+        Pipeline._answer packs them, with the encoder's sequence numbers."""
+        pipeline = self.pipeline
+        q = steps.q[answered]
+        rates = steps.gyro[answered] - steps.bias[answered]
+        stamps = np.floor(steps.t[answered] * 1000.0 + 1e-6).astype(np.int64) & 0xFFFFFFFF
+        encoder = pipeline._encoder(stream.key.system)
+        mav = encoder._mav
+        with_quaternion = pipeline.config.output.attitude_quaternion
+        packets = bulk.attitude_packets(
+            stamps,
+            bulk.euler_rows(q),
+            rates,
+            q if with_quaternion else None,
+            encoder.system,
+            encoder.component,
+            mav.seq,
+        )
+        sent = answered.shape[0] * (2 if with_quaternion else 1)
+        mav.seq = (mav.seq + sent) % 256
+        pipeline.sent += sent
+        stream.stats.answered += answered.shape[0]
+        return packets
+
+
+def _follow(vehicle: Vehicle, message: Any, last_t: float) -> None:
+    """What Pipeline.on_message does to a vehicle's aiding state with this GPS or
+    airspeed message (others leave it), at vehicle time ``last_t``."""
+    name = message._type
+    if name == "VFR_HUD":
+        airspeed = float(message.airspeed)
+        if 0.0 <= airspeed < 400.0:
+            vehicle.airspeed = airspeed
+            vehicle.airspeed_t = last_t
+    elif name == "GPS_RAW_INT":
+        vehicle.gps.on_fix(message.fix_type, last_t)
+    elif name == "GLOBAL_POSITION_INT":
+        vehicle.gps.on_velocity(message, last_t)
+
+
+def _times_of_references(times: np.ndarray, kinds: np.ndarray, before: float | None) -> np.ndarray:
+    """Each reference's time: the last estimate's before it (``before`` if none in
+    the stretch, NaN if none at all), as the pipeline takes ``vehicle.last_t``."""
+    estimate_at = np.where(kinds == ESTIMATE, np.arange(times.shape[0]), -1)
+    last = np.maximum.accumulate(estimate_at) if times.shape[0] else estimate_at
+    filled = np.where(last >= 0, times[np.maximum(last, 0)], math.nan if before is None else before)
+    return np.where(kinds == ESTIMATE, times, filled)

@@ -1,0 +1,491 @@
+"""The replay's fast path against the one-record-at-a-time path and against pymavlink.
+
+The fast path (mavest.mavlink.bulk, mavest.service.bulk) must give exactly what the
+pipeline gives record by record: the same output tlog, byte for byte, the same
+counters and comparisons. Its parts are checked against pymavlink on the same bytes:
+record boundaries, decoded fields, packed ATTITUDE and ATTITUDE_QUATERNION.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+import os
+import random
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from test_hostile_input import CASES, Flight, _tlog_bytes, clean_flights
+
+from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
+from mavest.mavlink import bulk
+from mavest.mavlink.clock import WRAP_TICKS, ClockEvent, StreamClock
+from mavest.mavlink.messages import IMU_MESSAGES, Encoder, MAVLink, decode_imu, mavlink2
+from mavest.mavlink.tlog import TlogReader
+from mavest.service.config import ServiceConfig
+from mavest.service.runners import Outputs, RunReport, format_summary, replay
+from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
+
+CONFIGS = Path(__file__).parent.parent / "configs"
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Flight]:
+    return clean_flights(tmp_path_factory)
+
+
+# ------------------------------------------------------------------ both paths
+
+
+def _replay(path: Path, config: ServiceConfig, out: Path, fast: bool) -> RunReport:
+    return asyncio.run(replay(path, config, Outputs(tlog=out), progress=False, fast=fast))
+
+
+def _state(report: RunReport) -> dict[str, Any]:
+    """Everything a replay leaves behind that is not a wall-clock time."""
+    pipeline = report.pipeline
+    summary = format_summary(report)
+    summary = re.sub(r"messages in [\d.]+ s", "", summary)
+    summary = re.sub(r"\([\d.]+ k samples/s\)", "", summary)
+    summary = re.sub(r"wrote \S+", "", summary)
+    return {
+        "summary": summary,
+        "messages_in": pipeline.messages_in,
+        "sent": pipeline.sent,
+        "bad_packets": pipeline.bad_packets,
+        "ignored_imu": dict(pipeline.ignored_imu),
+        "records": report.records,
+        "streams": {
+            str(key): (
+                dataclasses.asdict(stream.stats),
+                dataclasses.astuple(stream.vs_truth.result()),
+                stream.vs_truth.unmatched,
+                dataclasses.astuple(stream.vs_autopilot.result()),
+                stream.vs_autopilot.unmatched,
+                stream.estimator.q.tolist(),
+                stream.estimator.cov.tolist(),
+                stream.next_output,
+                stream.primary,
+            )
+            for key, stream in pipeline.streams.items()
+        },
+        "vehicles": {
+            key: (v.last_t, v.airspeed, v.airspeed_t, v.gps.accel, v.gps.accel_t, v.declination)
+            for key, v in pipeline.vehicles.items()
+        },
+    }
+
+
+def _assert_same_both_ways(path: Path, config: ServiceConfig, tmp_path: Path) -> RunReport:
+    fast_out, slow_out = tmp_path / "fast.tlog", tmp_path / "slow.tlog"
+    fast = _replay(path, config, fast_out, fast=True)
+    slow = _replay(path, config, slow_out, fast=False)
+    assert fast_out.read_bytes() == slow_out.read_bytes()
+    assert _state(fast) == _state(slow)
+    return fast
+
+
+def _bulk_samples(report: RunReport) -> int:
+    return sum(s.stats.estimated for s in report.pipeline.streams.values())
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_damaged_replay_is_the_same_both_ways(
+    case: str, flights: dict[str, Flight], tmp_path: Path
+) -> None:
+    flavour, make = CASES[case]
+    damage = make(flights[flavour])
+    path = tmp_path / "damaged.tlog"
+    path.write_bytes(_tlog_bytes(damage.chunks))
+    config = ServiceConfig()
+    if damage.args:  # e.g. --system 1
+        config = config.replace(input={"system": int(damage.args[-1])})
+    _assert_same_both_ways(path, config, tmp_path)
+
+
+@pytest.fixture(scope="module")
+def turning_flights(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Clean 12 s flights at 400 Hz with GPS, airspeed and truth: ArduPilot and PX4."""
+    out = {}
+    for flavour in ("ardupilot", "px4"):
+        path = tmp_path_factory.mktemp("turns") / f"{flavour}.tlog"
+        write_flight_tlog(path, 12.0, 400.0, AUTOPILOTS[flavour], seed=3)
+        out[flavour] = path
+    return out
+
+
+@pytest.mark.parametrize(
+    ("flavour", "config_file", "changes"),
+    [
+        ("ardupilot", "ardupilot.toml", {}),
+        ("ardupilot", "default.toml", {}),
+        ("ardupilot", "ardupilot.toml", {"output": {"attitude_rate": 50.0}}),
+        ("ardupilot", "ardupilot.toml", {"output": {"attitude_quaternion": False}}),
+        ("ardupilot", "ardupilot.toml", {"input": {"acceleration_aiding": "airspeed"}}),
+        ("ardupilot", "ardupilot.toml", {"input": {"acceleration_aiding": "off"}}),
+        ("ardupilot", "ardupilot.toml", {"output": {"heartbeat_rate": 0.0}}),
+        ("px4", "px4.toml", {}),
+    ],
+)
+def test_clean_flight_is_the_same_both_ways(
+    flavour: str,
+    config_file: str,
+    changes: dict[str, dict[str, Any]],
+    turning_flights: dict[str, Path],
+    tmp_path: Path,
+) -> None:
+    config = ServiceConfig.from_toml(CONFIGS / config_file)
+    if changes:
+        config = config.replace(**changes)
+    report = _assert_same_both_ways(turning_flights[flavour], config, tmp_path)
+    assert _bulk_samples(report) == 4801
+
+
+@pytest.mark.parametrize("with_rrd", [False, True])
+def test_most_samples_go_through_the_compiled_path(
+    with_rrd: bool,
+    turning_flights: dict[str, Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from mavest.service import bulk as service_bulk
+
+    feeds: list[service_bulk.BulkFeed] = []
+    original = service_bulk.BulkFeed.__init__
+
+    def remember(self: service_bulk.BulkFeed, *args: Any) -> None:
+        original(self, *args)
+        feeds.append(self)
+
+    monkeypatch.setattr(service_bulk.BulkFeed, "__init__", remember)
+    config = ServiceConfig.from_toml(CONFIGS / "ardupilot.toml")
+    outputs = Outputs(tlog=tmp_path / "out.tlog", rrd=tmp_path / "out.rrd" if with_rrd else None)
+    asyncio.run(replay(turning_flights["ardupilot"], config, outputs, progress=False))
+    assert len(feeds) == 1
+    # all but the first sample and those the airspeed correction needs one by one
+    assert feeds[0].bulk_samples > 0.9 * 4801
+
+
+def _shared_tlogs() -> list[Path]:
+    root = Path(os.environ.get("MAVEST_DATA", Path(__file__).parents[2] / "shared" / "data"))
+    return sorted((root / "tlogs").glob("*.tlog"))
+
+
+@pytest.mark.skipif(not _shared_tlogs(), reason="no tlogs in $MAVEST_DATA/tlogs (shared data)")
+@pytest.mark.parametrize("path", _shared_tlogs(), ids=lambda p: p.name)
+def test_real_tlogs_are_the_same_both_ways(path: Path, tmp_path: Path) -> None:
+    _assert_same_both_ways(path, ServiceConfig(), tmp_path)
+
+
+# ------------------------------------------------------------------ scanning
+
+
+def test_scan_finds_the_records_the_reader_finds(flights: dict[str, Flight]) -> None:
+    data = _tlog_bytes(flights["ardupilot"].chunks())
+    careful = [(r.timestamp_us, r.packet) for r in TlogReader(data)]
+    index = bulk.scan(np.frombuffer(data, dtype=np.uint8), 0, -1, 1 << 20)
+    scanned = [
+        (int(stamp), data[int(start) + 8 : int(end)])
+        for start, end, stamp in zip(index.start, index.end, index.stamp, strict=True)
+    ]
+    assert scanned == careful
+    headers = [MAVLink(None).decode(bytearray(packet)).get_header() for _, packet in careful]
+    assert index.system.tolist() == [h.srcSystem for h in headers]
+    assert index.component.tolist() == [h.srcComponent for h in headers]
+    assert index.message_id.tolist() == [h.msgId for h in headers]
+
+
+def test_scan_stops_at_the_first_record_that_is_not_clean(flights: dict[str, Flight]) -> None:
+    records = flights["ardupilot"].records
+    damaged = bytearray(_tlog_bytes(records[:100]))
+    where = len(damaged)
+    stamp, packet = records[100]
+    broken = bytearray(packet)
+    broken[-3] ^= 0x55  # a payload byte: the CRC no longer matches
+    damaged += stamp.to_bytes(8, "big") + bytes(broken) + _tlog_bytes(records[101:200])
+    array = np.frombuffer(bytes(damaged), dtype=np.uint8)
+    index = bulk.scan(array, 0, -1, 1 << 20)
+    assert len(index) == 100 and int(index.end[-1]) == where
+    # from the next record on it is clean again
+    after = where + 8 + len(packet)
+    assert len(bulk.scan(array, after, stamp, 1 << 20)) == 99
+    # nor is a timestamp days away a record, nor a cut packet
+    assert len(bulk.scan(array, 0, stamp + 4 * 24 * 3600 * 10**6, 10)) == 0
+    assert len(bulk.scan(array[: where - 3], 0, -1, 1 << 20)) == 99
+
+
+# ------------------------------------------------------------------ decoding
+
+
+def test_wire_types_are_pymavlink_layouts() -> None:
+    rng = np.random.default_rng(0)
+    for message_class in mavlink2.mavlink_map.values():
+        dtype = bulk.wire_dtype(message_class)
+        raw = rng.integers(0, 256, size=dtype.itemsize, dtype=np.uint8)
+        ours = raw.view(dtype)[0]
+        theirs = list(message_class.unpacker.unpack(raw.tobytes()))
+        for name, length in zip(
+            message_class.ordered_fieldnames, message_class.array_lengths, strict=True
+        ):
+            value = ours[name]
+            if value.dtype.kind == "S":  # a string: one item in struct's tuple
+                expected = theirs.pop(0)
+                assert value == expected.rstrip(b"\0") or length == 0
+                continue
+            count = length if length else 1
+            expected_values = [theirs.pop(0) for _ in range(count)]
+            assert np.array_equal(
+                np.atleast_1d(value), np.array(expected_values, dtype=value.dtype), equal_nan=True
+            ), (message_class.msgname, name)
+        assert not theirs
+
+
+def _imu_packets(name: str, count: int, seed: int) -> list[bytes]:
+    """Packets of ``name`` with random field values, MAVLink 1 and 2 mixed."""
+    rng = random.Random(seed)
+    message_class = mavlink2.mavlink_map[getattr(mavlink2, f"MAVLINK_MSG_ID_{name}")]
+    packets = []
+    for i in range(count):
+        values = []
+        for field_name, field_type in zip(
+            message_class.fieldnames, message_class.fieldtypes, strict=True
+        ):
+            if field_type == "float":
+                value: Any = rng.choice([0.0, rng.uniform(-30, 30), rng.uniform(-1e3, 1e3)])
+            elif field_type.startswith("int"):
+                bits = int(field_type[3:-2])
+                value = rng.choice([0, -(1 << (bits - 1)), (1 << (bits - 1)) - 1])
+                value = rng.choice([value, rng.randrange(-(1 << (bits - 1)), 1 << (bits - 1))])
+            else:
+                bits = int(field_type[4:-2])
+                value = rng.randrange(0, 1 << min(bits, 40))
+            if field_name == "fields_updated":
+                value = rng.choice([0xFFFF, 0x3F, 0x1FF, 0x1F, rng.randrange(0, 1 << 16)])
+            values.append(value)
+        mav = MAVLink(None, srcSystem=1, srcComponent=1)
+        message = message_class(*values)
+        packets.append(message.pack(mav, force_mavlink1=bool(i % 3 == 0)))
+    return packets
+
+
+@pytest.mark.parametrize("name", IMU_MESSAGES)
+def test_imu_fields_equal_decode_imu(name: str) -> None:
+    packets = _imu_packets(name, 300, seed=len(name))
+    data = b"".join((10**6 + i).to_bytes(8, "big") + p for i, p in enumerate(packets))
+    array = np.frombuffer(data, dtype=np.uint8)
+    index = bulk.scan(array, 0, -1, 1000)
+    assert len(index) == len(packets)
+    message_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}")
+    fields = bulk.imu_fields(
+        name, bulk.decode_payloads(array, index, bulk.wire_dtype(mavlink2.mavlink_map[message_id]))
+    )
+    for i, packet in enumerate(packets):
+        sample = decode_imu(MAVLink(None).decode(bytearray(packet)))
+        assert fields.inertial_fresh[i] == (sample is not None)
+        if sample is None:
+            continue
+        assert fields.ticks[i] == sample.ticks
+        assert tuple(fields.gyro[i]) == sample.gyro
+        assert tuple(fields.accel[i]) == sample.accel
+        assert fields.mag_fresh[i] == (sample.mag is not None)
+        if sample.mag is not None:
+            assert tuple(fields.mag[i]) == sample.mag
+        assert fields.instance[i] == sample.stream.instance
+        assert fields.saturated[i] == sample.saturated
+
+
+# ------------------------------------------------------------------ encoding
+
+
+@pytest.mark.parametrize("with_quaternion", [True, False])
+def test_attitude_packets_are_pymavlink_packets(with_quaternion: bool) -> None:
+    rng = np.random.default_rng(7)
+    n = 600
+    stamps = rng.integers(0, 1 << 32, n)
+    euler = rng.uniform(-math.pi, math.pi, (n, 3))
+    rates = rng.normal(0.0, 1.0, (n, 3))
+    q = rng.normal(size=(n, 4))
+    # zeros at the end of a payload are cut in MAVLink 2: some rows end in zeros
+    rates[::5] = 0.0
+    euler[::10, 2] = 0.0
+    q[::7, 3] = 0.0
+    encoder = Encoder(42, 191)
+    encoder._mav.seq = 200  # the sequence number wraps inside the batch
+    first, second = bulk.attitude_packets(
+        stamps, euler, rates, q if with_quaternion else None, 42, 191, 200
+    )
+    for i in range(n):
+        rate = (float(rates[i, 0]), float(rates[i, 1]), float(rates[i, 2]))
+        expected = encoder.attitude(int(stamps[i]), euler[i], rate)
+        assert first.data[i, : first.length[i]].tobytes() == expected
+        if with_quaternion:
+            assert second is not None
+            expected = encoder.attitude_quaternion(int(stamps[i]), q[i], rate)
+            assert second.data[i, : second.length[i]].tobytes() == expected
+        else:
+            assert second is None
+
+
+# ------------------------------------------------------------------ clock and comparison
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_clock_run_equals_reading_one_by_one(seed: int) -> None:
+    rng = random.Random(seed)
+    ticks = [rng.randrange(0, 10**6)]
+    for _ in range(3000):
+        step = rng.choice([1000] * 40 + [1001, 999, 0, -5, 9000, 80000, -700000, 10**9])
+        ticks.append(ticks[-1] + step)
+    ticks = [t % WRAP_TICKS if rng.random() < 0.999 else t for t in ticks]
+    tick = 1e-6
+    one, run = StreamClock(), StreamClock()
+    i = 0
+    while i < len(ticks):
+        times = run.read_run(np.array(ticks[i:], dtype=np.int64), tick)
+        count = len(times)
+        if count:
+            run.take_run(np.array(ticks[i : i + count], dtype=np.int64), tick, count)
+            for k in range(count):
+                reading = one.read(ticks[i + k], tick)
+                assert reading.event is ClockEvent.NEXT and reading.t == times[k]
+            i += count
+        else:
+            reading = one.read(ticks[i], tick)
+            assert reading == run.read(ticks[i], tick)
+            # a plain next sample the run would have taken; a confirmed jump it leaves
+            assert reading.event is not ClockEvent.NEXT or reading.dt > run.max_jump
+            i += 1
+        assert run.period == one.period
+
+
+def _reference_comparison(
+    items: list[tuple[int, float, tuple[float, float, float]]],
+    settle: float,
+    history: int,
+    max_span: float,
+) -> tuple[int, list[float], int]:
+    """EulerComparison's rules written plainly: lists, no rings, no compiled code."""
+    ours: list[tuple[float, tuple[float, float, float]]] = []
+    pending: list[tuple[float, tuple[float, float, float]]] = []
+    start = None
+    sums = [0.0] * 4
+    count = unmatched = 0
+
+    def wrap(a: float) -> float:
+        return (a + math.pi) % (2 * math.pi) - math.pi
+
+    def resolve(t: float, ref: tuple[float, float, float]) -> None:
+        nonlocal count, unmatched
+        window = ours[-history:]
+        if start is None or not window or t < window[0][0]:
+            unmatched += 1
+            return
+        after = next(i for i, (te, _) in enumerate(window) if te >= t or i == len(window) - 1)
+        t1, e1 = window[after]
+        if after == 0 or t1 == t:
+            est = e1
+        else:
+            t0, e0 = window[after - 1]
+            if t1 - t0 > max_span:
+                unmatched += 1
+                return
+            w = (t - t0) / (t1 - t0)
+            est = (
+                e0[0] + w * wrap(e1[0] - e0[0]),
+                e0[1] + w * (e1[1] - e0[1]),
+                e0[2] + w * wrap(e1[2] - e0[2]),
+            )
+        if t - start < settle:
+            return
+        down_a = (-math.sin(est[1]), math.sin(est[0]) * math.cos(est[1]))
+        down_a += (math.cos(est[0]) * math.cos(est[1]),)
+        down_b = (-math.sin(ref[1]), math.sin(ref[0]) * math.cos(ref[1]))
+        down_b += (math.cos(ref[0]) * math.cos(ref[1]),)
+        dot = sum(a * b for a, b in zip(down_a, down_b, strict=True))
+        sums[0] += wrap(est[0] - ref[0]) ** 2
+        sums[1] += (est[1] - ref[1]) ** 2
+        sums[2] += math.acos(max(-1.0, min(1.0, dot))) ** 2
+        sums[3] += wrap(est[2] - ref[2]) ** 2
+        count += 1
+
+    for kind, t, euler in items:
+        if kind == ESTIMATE:
+            if start is None:
+                start = t
+            if ours and t <= ours[-1][0]:
+                continue
+            ours.append((t, euler))
+            while pending and pending[0][0] <= t:
+                resolve(*pending.pop(0))
+        elif ours and t <= ours[-1][0]:
+            resolve(t, euler)
+        else:
+            pending.append((t, euler))
+            if len(pending) > 64:
+                pending.pop(0)
+                unmatched += 1
+    return count, sums, unmatched
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_comparison_follows_its_rules_one_by_one_and_in_bulk(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    history = int(rng.integers(3, 40))
+    items = []
+    t = 0.0
+    for _ in range(2500):
+        if rng.random() < 0.5:
+            t += float(rng.exponential(0.01)) * (1 if rng.random() > 0.05 else -1)
+            items.append((ESTIMATE, t, tuple(rng.uniform(-3.2, 3.2, 3).tolist())))
+        else:
+            items.append((REFERENCE, t + float(rng.normal(0, 0.03)), tuple(rng.uniform(-3, 3, 3))))
+    count, sums, unmatched = _reference_comparison(items, 0.5, history, 0.05)
+    one = EulerComparison(0.5, history, 0.05)
+    for kind, ti, euler in items:
+        (one.add_estimate if kind == ESTIMATE else one.add_reference)(ti, euler)
+    many = EulerComparison(0.5, history, 0.05)
+    kinds = np.array([k for k, _, _ in items], dtype=np.int64)
+    times = np.array([ti for _, ti, _ in items])
+    eulers = np.array([e for _, _, e in items])
+    for part in np.array_split(np.arange(len(items)), 7):
+        many.add_many(kinds[part], times[part], eulers[part])
+    n = max(count, 1)
+    expected = [math.degrees(math.sqrt(s / n)) for s in sums]
+    for comparison in (one, many):
+        result = comparison.result()
+        assert (result.count, comparison.unmatched) == (count, unmatched)
+        values = [result.roll_rms, result.pitch_rms, result.inclination_rms, result.yaw_rms]
+        assert values == pytest.approx(expected, rel=1e-12)
+    assert dataclasses.astuple(one.result()) == dataclasses.astuple(many.result())
+
+
+# ------------------------------------------------------------------ a recording
+
+
+def test_a_recording_holds_the_same_both_ways(
+    turning_flights: dict[str, Path], tmp_path: Path
+) -> None:
+    from test_rerun import _scalars
+
+    config = ServiceConfig.from_toml(CONFIGS / "ardupilot.toml")
+    recordings = {}
+    for fast in (True, False):
+        rrd = tmp_path / f"{fast}.rrd"
+        outputs = Outputs(tlog=tmp_path / f"{fast}.tlog", rrd=rrd)
+        asyncio.run(
+            replay(turning_flights["ardupilot"], config, outputs, progress=False, fast=fast)
+        )
+        recordings[fast] = _scalars(rrd)
+    assert (tmp_path / "True.tlog").read_bytes() == (tmp_path / "False.tlog").read_bytes()
+    fast, one_by_one = recordings[True], recordings[False]
+    assert fast.keys() == one_by_one.keys()
+    for entity, (t, values, receive) in one_by_one.items():
+        if entity.endswith("processing_us"):  # a time measured, not a result
+            continue
+        assert np.array_equal(fast[entity][0], t), entity
+        assert np.allclose(fast[entity][1], values, rtol=0, atol=1e-9, equal_nan=True), entity
+        assert fast[entity][2] == receive, entity
