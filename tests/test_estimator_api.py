@@ -56,6 +56,80 @@ def test_online_updates_equal_the_batch() -> None:
     assert np.all(np.isfinite(e.q))
 
 
+_SERIES_FIELDS = (
+    "t",
+    "q",
+    "bias",
+    "cov",
+    "innovation",
+    "nis",
+    "accel_used",
+    "flags",
+    "iterations",
+    "at_rest",
+    "heading_innovation",
+    "heading_nis",
+    "mag_used",
+)
+
+
+@pytest.mark.parametrize("update", ["iterated", "sigma_point"])
+def test_update_loop_equals_update_batch_with_mag_and_linear_accel(update: str) -> None:
+    """Every field of every step, bit for bit: a loop of update (arrays, tuples and None
+    mixed, as callers pass them) and update_batch taking over a live estimator."""
+    data = simulate(30.0, 100.0, motion=Motion(velocity_sigma=2.0, burst_magnitude=4.0), seed=4)
+    n = len(data.t)
+    mag = data.mag.copy()
+    mag[1::2] = np.nan  # a magnetometer at half the IMU's rate
+    linear_accel = data.linear_accel.copy()
+    linear_accel[: n // 3] = np.nan  # known from a third of the way on
+    linear_accel[::5] = np.nan
+    config = EstimatorConfig(update=update)
+    looped = Estimator(config)
+    rows = []
+    for i in range(n):
+        gyro = tuple(data.gyro[i].tolist()) if i % 2 else data.gyro[i]
+        m = None if np.isnan(mag[i, 0]) else mag[i]
+        a = None if np.isnan(linear_accel[i, 0]) else tuple(linear_accel[i].tolist())
+        rows.append(looped.update(data.t[i], gyro, data.accel[i], m, a))
+    assert any(e.mag_used for e in rows) and any(e.flags & StepFlags.ACCEL_AIDED for e in rows)
+    half = n // 2
+    live = Estimator(config)
+    for i in range(half):
+        m = None if np.isnan(mag[i, 0]) else mag[i]
+        a = None if np.isnan(linear_accel[i, 0]) else linear_accel[i]
+        live.update(data.t[i], data.gyro[i], data.accel[i], m, a)
+    batch = live.update_batch(
+        data.t[half:], data.gyro[half:], data.accel[half:], mag[half:], linear_accel[half:]
+    )
+    whole = Estimator(config).update_batch(data.t, data.gyro, data.accel, mag, linear_accel)
+    for i in range(n):
+        for name in _SERIES_FIELDS:
+            value = getattr(rows[i], name)
+            assert type(value) is type(getattr(whole[i], name)), name
+            expected = [getattr(whole[i], name)] + ([getattr(batch[i - half], name)] * (i >= half))
+            for other in expected:
+                np.testing.assert_array_equal(value, other, err_msg=f"{name} at sample {i}")
+    np.testing.assert_array_equal(looped.cov, live.cov)
+    assert looped.samples == live.samples == n
+
+
+def test_update_checks_components_whatever_their_container() -> None:
+    est = Estimator()
+    accel = (0.0, 0.0, -G)
+    for gyro in (np.zeros((1, 3)), np.zeros((3, 1)), (0.0, 0.0, 0.0, 0.0), np.zeros(2), 0.0):
+        with pytest.raises(ValueError, match="gyro must have 3 components"):
+            est.update(0.01, gyro, accel)
+    with pytest.raises(ValueError, match="mag must have 3 components"):
+        est.update(0.01, (0.0, 0.0, 0.0), accel, mag=[1.0, 2.0])
+    with pytest.raises(ValueError, match="linear_accel must have 3 components"):
+        est.update(0.01, (0.0, 0.0, 0.0), accel, linear_accel=np.zeros(4))
+    assert est.samples == 0  # nothing refused was taken
+    e = est.update(np.float64(0.01), [0, 0, 0], np.array([0.0, 0.0, -G], dtype=np.float32))
+    assert e.flags == StepFlags.INITIALISED and isinstance(e.t, float)
+    assert e.q.dtype == np.float64 and e.cov.shape == (6, 6) and e.cov.flags.c_contiguous
+
+
 def test_first_sample_sets_tilt_from_the_accelerometer() -> None:
     roll, pitch = math.radians(25.0), math.radians(-40.0)
     # specific force at rest, FRD body: −g times the world down axis seen in the body

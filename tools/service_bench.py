@@ -2,14 +2,39 @@
 
     .venv/bin/python tools/service_bench.py [--seconds 30] [--rate 1000] [--replay-seconds 300]
 
-Live: the simulated vehicle streams RAW_IMU at ``--rate`` over loopback UDP to
-``mavest run udpin:…`` (a separate process, as users run it) and times every
-IMU packet sent → ATTITUDE received, matched by ``time_boot_ms``. Replay: a
-1 kHz simulated flight (``--replay-seconds``) written to a tlog, then the whole
-command ``mavest replay FILE --out-tlog OUT`` timed, beside pymavlink reading every
-message of the same file (``recv_msg`` until the end) and the same command with
-``--one-by-one``, in interleaved rounds; and the command on a 1 s flight, which is
-its start-up (imports, the compiled kernels loaded from the cache).
+Live: ``mavest run udpin:…`` (a separate process, as users run it) is fed a simulated
+flight over loopback UDP at ``--rate`` (RAW_IMU and SIMSTATE per sample, VFR_HUD and
+GPS at 10 Hz, HEARTBEAT at 1 Hz: the stream of the tlogs below), and every IMU packet
+is timed to the ATTITUDE that answers it (matched by ``time_boot_ms``; above 1 kHz, in
+order within a millisecond); samples never answered are counted as lost. How it times,
+so that what it reports is the service's latency and not the bench's:
+
+- the flight is computed before the clock starts: while timing, the vehicle only sends
+  (the streaming vehicle of ``mavest sim`` steps JSBSim in the event loop it
+  receives in, where a long step makes sends late and receive times later still);
+- the send time is read just before the ``send`` of each IMU packet, which on loopback
+  puts it in the service's socket within the call; the arrival time of each ATTITUDE
+  is the kernel's stamp (SO_TIMESTAMPNS) of when the service's ``sendto`` put it in
+  the vehicle's socket, however late the vehicle reads it. Latency is packet in →
+  ATTITUDE out, plus two loopback hops;
+- "sender late" is how far behind its schedule the vehicle sent (a sender held up on
+  a busy machine sends several samples at once, which the service then queues);
+- "service CPU" is the service's user + system CPU over the stream (from /proc).
+
+``--live-rounds`` streams, each with a fresh service; ``--baseline DIR`` runs the
+service from another source tree (e.g. an older checkout) in interleaved rounds, for
+a before/after in the same run. ``--realtime`` puts the service's event loop and the
+sending loop at SCHED_FIFO priority (root): what the service does when the rest of a
+shared machine cannot take its CPU. The rate sweep (``--sweep-rates``, ``--sweep-seconds``
+each, a fresh service per rate) reports the highest rate answered without loss and
+kept up (the last second's median latency under ``KEPT_UP_MS``; a service that falls
+behind builds a backlog that grows through the run) and its p99.
+
+Replay: a 1 kHz simulated flight (``--replay-seconds``) written to a tlog, then the
+whole command ``mavest replay FILE --out-tlog OUT`` timed, beside pymavlink reading
+every message of the same file (``recv_msg`` until the end) and the same command
+with ``--one-by-one``, in interleaved rounds; and the command on a 1 s flight, which
+is its start-up (imports, the compiled kernels loaded from the cache).
 Rerun: a ``--rerun-seconds`` replay with and without ``--rrd`` in interleaved rounds,
 sample by sample as the live service works (``--one-by-one``), CPU time (user +
 system) of the whole command; the ratio is what recording costs.
@@ -24,39 +49,325 @@ is run twice to show the count repeats. ``--only rerun`` (or live, replay) runs 
 from __future__ import annotations
 
 import argparse
-import asyncio
+import contextlib
+import gc
+import math
 import os
+import select
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
 import time
+from collections import deque
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from pymavlink import mavutil
 
+from mavest.mavlink.messages import MAVLink, time_boot_ms
 from mavest.service.process import MAVEST, ServiceProcess, free_port
-from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
+from mavest.sim.vehicle import AUTOPILOTS, TLOG_EPOCH_US, flight_records, write_flight_tlog
 
 PARTS = ("live", "replay", "rerun")
 
 
-def live(seconds: float, rate: float) -> dict[str, float]:
-    port = free_port(socket.SOCK_DGRAM)
-    service = ServiceProcess(f"udpin:127.0.0.1:{port}")
+# ---------------------------------------------------------------- live latency
+#
+# The vehicle of the live part is the simulated flight of the tlogs (flight_records: the
+# IMU message and SIMSTATE per sample, VFR_HUD and GPS at 10 Hz, HEARTBEAT at 1 Hz),
+# computed before the clock starts, so that sending is all the bench does while it times.
+
+# Linux's SO_TIMESTAMPNS (= SCM_TIMESTAMPNS): the kernel stamps each datagram with the
+# CLOCK_REALTIME nanosecond it arrived at the socket (not every Python names it).
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+_TIMESPEC = struct.Struct("@qq")
+LINGER = 1.0  # s after the last IMU packet for the last answers (and a backlog) to come
+REPLY_BUFFER = 8 << 20  # bytes of the bench's receive buffer: no answer lost there
+KEPT_UP_MS = 10.0  # median latency of the last second under which a rate is kept up
+
+
+@dataclass(frozen=True)
+class PreparedFlight:
+    """A flight's packets, grouped by the time they are due, ready to send.
+
+    ``times[i]`` (s from the start) is when group i is due; ``imu[i]`` is its IMU packet
+    (empty for a group without one), sent first and timed; ``others[i]`` the rest
+    (SIMSTATE, VFR_HUD, GPS, HEARTBEAT, PARAM_VALUE); ``keys[i]`` the ``time_boot_ms``
+    the service's ATTITUDE for that IMU sample carries (−1: no IMU in the group).
+    """
+
+    rate: float
+    times: np.ndarray
+    imu: list[bytes]
+    others: list[tuple[bytes, ...]]
+    keys: np.ndarray
+
+    @property
+    def samples(self) -> int:
+        return int((self.keys >= 0).sum())
+
+
+def prepare_flight(seconds: float, rate: float, seed: int = 1) -> PreparedFlight:
+    """The simulated vehicle's stream at ``rate`` Hz for ``seconds``, computed now."""
+    parser = MAVLink(None)
+    imu_name = AUTOPILOTS["ardupilot"].imu_message
+    times: list[float] = []
+    imu: list[bytes] = []
+    others: list[list[bytes]] = []
+    keys: list[int] = []
+    last_stamp = None
+    for stamp, packet in flight_records(seconds, rate, AUTOPILOTS["ardupilot"], seed):
+        if stamp != last_stamp:
+            times.append((stamp - TLOG_EPOCH_US) * 1e-6)
+            imu.append(b"")
+            others.append([])
+            keys.append(-1)
+            last_stamp = stamp
+        message = parser.parse_char(packet)
+        if message is not None and message.get_type() == imu_name:
+            imu[-1] = packet
+            # as the service stamps its answer: the sample's time since boot, in ms
+            keys[-1] = time_boot_ms(message.time_usec * 1e-6)
+        else:
+            others[-1].append(packet)
+    return PreparedFlight(
+        rate, np.array(times), imu, [tuple(o) for o in others], np.array(keys, dtype=np.int64)
+    )
+
+
+@dataclass
+class LiveRun:
+    """What one live stream measured; latencies in ms, from kernel timestamps."""
+
+    rate: float
+    sent: int  # IMU samples sent
+    answered: int  # of those, answered by an ATTITUDE
+    latencies: np.ndarray  # ms, IMU packet sent → its ATTITUDE at our socket, per answer
+    answered_at: np.ndarray  # s into the stream each answered sample was due (as latencies)
+    lateness: np.ndarray  # ms, how long after its due time each IMU packet was sent
+    unmatched: int = 0  # ATTITUDE for no sample sent (or answered twice)
+    send_errors: int = 0
+    seconds: float = 0.0  # the stream's length
+    service_cpu_s: float = math.nan  # CPU the service used meanwhile (user + system)
+
+    @property
+    def lost(self) -> int:
+        return self.sent - self.answered
+
+    @property
+    def kept_up(self) -> bool:
+        """The service answered the last second's samples within ``KEPT_UP_MS`` (median):
+        one that falls behind builds a backlog that grows through the run."""
+        if not self.answered:
+            return False
+        last = self.answered_at >= self.answered_at.max() - 1.0
+        return float(np.median(self.latencies[last])) < KEPT_UP_MS
+
+    def percentile(self, q: float) -> float:
+        return float(np.percentile(self.latencies, q)) if len(self.latencies) else math.nan
+
+    def row(self) -> dict[str, float]:
+        return {
+            "rate": self.rate,
+            "sent": self.sent,
+            "lost": self.lost,
+            "answered %": 100.0 * self.answered / self.sent if self.sent else 0.0,
+            "p50 ms": self.percentile(50),
+            "p99 ms": self.percentile(99),
+            "p99.9 ms": self.percentile(99.9),
+            "max ms": float(self.latencies.max()) if len(self.latencies) else math.nan,
+            "sender late p99 ms": float(np.percentile(self.lateness, 99)),
+            "service CPU %": 100.0 * self.service_cpu_s / self.seconds,
+            "CPU µs per sample": 1e6 * self.service_cpu_s / self.sent if self.sent else math.nan,
+        }
+
+
+def _kernel_ns(ancillary: list[tuple[int, int, bytes]]) -> int:
+    for level, kind, data in ancillary:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+            seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+            return seconds * 1_000_000_000 + nanoseconds
+    return time.time_ns()  # (never on Linux) the time we read it: later, never earlier
+
+
+def drive(address: tuple[str, int], flight: PreparedFlight, linger: float = LINGER) -> LiveRun:
+    """Send ``flight`` to ``address`` on its schedule and time every answer.
+
+    Each IMU packet's send time is read (CLOCK_REALTIME) just before the ``send`` that
+    puts it in the service's socket: on loopback the kernel delivers it within that
+    call. Each ATTITUDE's arrival time is the kernel's own stamp (SO_TIMESTAMPNS) of
+    when the service's ``sendto`` put it in our socket, so however late this loop reads
+    it (busy sending, descheduled) the latency is the service's: packet in → ATTITUDE
+    out, plus two loopback hops. Between sends the loop waits in ``select`` on the
+    socket and takes the answers as they come, unparsed; matching them to samples
+    (by ``time_boot_ms``, in order within a millisecond) is done after the run.
+    """
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, REPLY_BUFFER)
+    sock.connect(address)
+    sock.setblocking(False)
+    replies: list[tuple[bytes, int]] = []
+    ancillary_size = socket.CMSG_SPACE(_TIMESPEC.size)
+    count = len(flight.times)
+    sent_ns = np.zeros(count, dtype=np.int64)
+    lateness = np.zeros(count)
+    send_errors = 0
+
+    def take_replies() -> None:
+        while True:
+            try:
+                data, ancillary, _, _ = sock.recvmsg(2048, ancillary_size)
+            except (BlockingIOError, InterruptedError):
+                return
+            except ConnectionRefusedError:  # ICMP: the service is not (yet) listening
+                continue
+            replies.append((data, _kernel_ns(ancillary)))
+
+    times, imu, others = flight.times, flight.imu, flight.others
+    clock = time.perf_counter
+    gc_was_enabled = gc.isenabled()
+    gc.disable()  # the bench's own pauses would only delay sends, but keep the grid exact
     try:
-        report = asyncio.run(stream_flight(f"udpout:127.0.0.1:{port}", rate, seconds=seconds))
+        start = clock() + 0.05
+        for i in range(count):
+            due = start + times[i]
+            while (wait := due - clock()) > 0.0:
+                readable, _, _ = select.select([sock], [], [], wait)
+                if readable:
+                    take_replies()
+            packet = imu[i]
+            try:
+                if packet:
+                    sent_ns[i] = time.time_ns()
+                    sock.send(packet)
+                for other in others[i]:
+                    sock.send(other)
+            except OSError:  # ICMP refusal of an earlier packet, a full buffer
+                send_errors += 1
+            lateness[i] = clock() - due
+        end = clock() + linger
+        while (wait := end - clock()) > 0.0:
+            readable, _, _ = select.select([sock], [], [], wait)
+            if readable:
+                take_replies()
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+        sock.close()
+    return _score(flight, sent_ns, lateness * 1e3, replies, send_errors)
+
+
+def _score(
+    flight: PreparedFlight,
+    sent_ns: np.ndarray,
+    lateness_ms: np.ndarray,
+    replies: list[tuple[bytes, int]],
+    send_errors: int,
+) -> LiveRun:
+    """Match each ATTITUDE to the sample it answers: same ``time_boot_ms``, and within
+    one millisecond (rates above 1 kHz) the samples in the order they were sent."""
+    waiting: dict[int, deque[int]] = {}
+    for i in np.flatnonzero(flight.keys >= 0):
+        waiting.setdefault(int(flight.keys[i]), deque()).append(int(i))
+    parser = MAVLink(None)
+    parser.robust_parsing = True
+    latencies: list[int] = []
+    answered_at: list[float] = []
+    unmatched = 0
+    for data, arrived_ns in replies:
+        for message in parser.parse_buffer(data) or ():
+            if message.get_type() != "ATTITUDE":
+                continue
+            queue = waiting.get(message.time_boot_ms)
+            if not queue:
+                unmatched += 1
+                continue
+            sample = queue.popleft()
+            latencies.append(arrived_ns - int(sent_ns[sample]))
+            answered_at.append(float(flight.times[sample]))
+    imu_groups = flight.keys >= 0
+    return LiveRun(
+        rate=flight.rate,
+        sent=flight.samples,
+        answered=len(latencies),
+        latencies=np.array(latencies, dtype=np.float64) * 1e-6,
+        answered_at=np.array(answered_at),
+        lateness=lateness_ms[imu_groups],
+        unmatched=unmatched,
+        send_errors=send_errors,
+        seconds=float(flight.times[-1]) + LINGER,
+    )
+
+
+def live(
+    seconds: float,
+    rate: float,
+    flight: PreparedFlight | None = None,
+    service_path: str = "",
+    realtime: bool = False,
+) -> LiveRun:
+    """One ``mavest run udpin:…`` process fed ``flight`` (made here if not given).
+
+    ``service_path``: run the service from that source tree (PYTHONPATH) instead of
+    this one's, to compare two versions of it in the same run. ``realtime``: the
+    service's event loop and this sending loop at SCHED_FIFO priority, which the
+    machine's other work cannot preempt (needs CAP_SYS_NICE, e.g. root).
+    """
+    flight = flight if flight is not None else prepare_flight(seconds, rate)
+    port = free_port(socket.SOCK_DGRAM)
+    environment = None
+    if service_path:
+        environment = {**os.environ, "PYTHONPATH": service_path}
+    service = ServiceProcess(f"udpin:127.0.0.1:{port}", env=environment)
+    try:
+        with _realtime(service.process.pid) if realtime else contextlib.nullcontext():
+            cpu_before = _cpu_of(service.process.pid)
+            run = drive(("127.0.0.1", port), flight)
+            run.service_cpu_s = _cpu_of(service.process.pid) - cpu_before
+        return run
     finally:
         service.stop()
-    return {
-        "sent": report.sent,
-        "answered %": 100.0 * report.answered_fraction,
-        "p50 ms": report.latency_p50_ms,
-        "p99 ms": report.latency_p99_ms,
-        "max ms": report.latency_max_ms,
-    }
+
+
+REALTIME_PRIORITY = 10  # SCHED_FIFO's 1–99: above every ordinary process, below the kernel's
+
+
+@contextlib.contextmanager
+def _realtime(service_pid: int) -> Iterator[None]:
+    """The service's main thread (its event loop) and this thread at SCHED_FIFO."""
+    fifo = os.sched_param(REALTIME_PRIORITY)
+    try:
+        os.sched_setscheduler(service_pid, os.SCHED_FIFO, fifo)
+        os.sched_setscheduler(0, os.SCHED_FIFO, fifo)
+    except PermissionError:
+        raise SystemExit("--realtime needs the right to set SCHED_FIFO (CAP_SYS_NICE)") from None
+    try:
+        yield
+    finally:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def _cpu_of(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far, from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def rate_sweep(rates: list[float], seconds: float, realtime: bool = False) -> list[LiveRun]:
+    """The live stream at each rate in turn, a fresh service for each, ``seconds`` each."""
+    return [live(seconds, rate, realtime=realtime) for rate in rates]
+
+
+def highest_sustained(runs: list[LiveRun]) -> LiveRun | None:
+    """The fastest run that lost nothing and kept up (None: none did)."""
+    clean = [run for run in runs if run.sent > 0 and run.lost == 0 and run.kept_up]
+    return max(clean, key=lambda run: run.rate) if clean else None
 
 
 def _wall_seconds(command: list[str]) -> float:
@@ -263,6 +574,27 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="live stream length")
     parser.add_argument("--rate", type=float, default=1000.0, help="live IMU rate, Hz")
+    parser.add_argument(
+        "--live-rounds", type=int, default=3, help="live streams (per service version)"
+    )
+    parser.add_argument(
+        "--baseline",
+        default="",
+        help="also measure live the mavest source tree in this directory (its PYTHONPATH), "
+        "in rounds interleaved with this one: before/after a change in the same run",
+    )
+    parser.add_argument(
+        "--sweep-rates",
+        default="1000,2000,4000,8000,16000",
+        help="IMU rates (Hz, comma-separated) for the highest rate without loss; '' skips",
+    )
+    parser.add_argument(
+        "--realtime",
+        action="store_true",
+        help="live: the service and the sending loop at SCHED_FIFO priority (needs root), "
+        "out of reach of the machine's other load",
+    )
+    parser.add_argument("--sweep-seconds", type=float, default=5.0, help="stream length per rate")
     parser.add_argument("--replay-seconds", type=float, default=300.0, help="1 kHz tlog length")
     parser.add_argument(
         "--rerun-seconds", type=float, default=30.0, help="1 kHz tlog length for Rerun's cost"
@@ -291,14 +623,14 @@ def main() -> int:
     args = parser.parse_args()
     parts = args.only or list(PARTS)
     if "live" in parts:
-        result = live(args.seconds, args.rate)
-        print(f"\nLive, {args.rate:g} Hz RAW_IMU over loopback UDP for {args.seconds:g} s")
-        print("| sent | answered | latency p50 | p99 | max |")
-        print("|---:|---:|---:|---:|---:|")
-        print(
-            f"| {result['sent']:.0f} | {result['answered %']:.2f} % | {result['p50 ms']:.3f} ms | "
-            f"{result['p99 ms']:.3f} ms | {result['max ms']:.2f} ms |"
-        )
+        flight = prepare_flight(args.seconds, args.rate)
+        services = {"this checkout": ""}
+        if args.baseline:
+            services = {f"{args.baseline}": args.baseline, **services}
+        print_live(live_rounds(flight, services, args.live_rounds, args.realtime), args)
+        if args.sweep_rates:
+            rates = [float(r) for r in args.sweep_rates.split(",")]
+            print_sweep(rate_sweep(rates, args.sweep_seconds, args.realtime), args)
     with tempfile.TemporaryDirectory() as workdir:
         if "replay" in parts:
             replayed = replay_throughput(args.replay_seconds, Path(workdir), args.rounds)
@@ -310,6 +642,76 @@ def main() -> int:
                 counted = rerun_instructions(args.instruction_seconds, Path(workdir), args.jobs)
             print_rerun(cost, counted, args)
     return 0
+
+
+def live_rounds(
+    flight: PreparedFlight, services: dict[str, str], rounds: int, realtime: bool = False
+) -> dict[str, list[LiveRun]]:
+    """``flight`` sent to each service version (label → source tree, "" for this one)
+    ``rounds`` times, the versions in turn first from one round to the next (ABBA)."""
+    runs: dict[str, list[LiveRun]] = {label: [] for label in services}
+    order = list(services.items())
+    for i in range(rounds):
+        for label, path in order if i % 2 == 0 else order[::-1]:
+            runs[label].append(live(0.0, flight.rate, flight, path, realtime))
+    return runs
+
+
+def print_live(runs: dict[str, list[LiveRun]], args: argparse.Namespace) -> None:
+    print(
+        f"\nLive, {args.rate:g} Hz RAW_IMU (+ SIMSTATE per sample) over loopback UDP for "
+        f"{args.seconds:g} s; latency = IMU packet sent → its ATTITUDE at the vehicle's "
+        "socket (kernel timestamp)"
+        + ("; service and sender at SCHED_FIFO" if args.realtime else "")
+    )
+    print(
+        "| service | run | sent | lost | latency p50 | p99 | p99.9 | max | sender late p99 "
+        "| service CPU |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for label, label_runs in runs.items():
+        for number, run in enumerate(label_runs, 1):
+            print(_live_row(label, str(number), run.row()))
+        if len(label_runs) > 1:
+            rows = [run.row() for run in label_runs]
+            median = {key: float(np.median([row[key] for row in rows])) for key in rows[0]}
+            print(_live_row(label, "**median**", median))
+
+
+def _live_row(label: str, run: str, row: dict[str, float]) -> str:
+    return (
+        f"| {label} | {run} | {row['sent']:.0f} | {row['lost']:.0f} | {row['p50 ms']:.3f} ms | "
+        f"{row['p99 ms']:.3f} ms | {row['p99.9 ms']:.2f} ms | {row['max ms']:.2f} ms | "
+        f"{row['sender late p99 ms']:.3f} ms | {row['service CPU %']:.0f} % "
+        f"({row['CPU µs per sample']:.0f} µs/sample) |"
+    )
+
+
+def print_sweep(runs: list[LiveRun], args: argparse.Namespace) -> None:
+    print(
+        f"\nRate sweep: {args.sweep_seconds:g} s at each rate, a fresh service for each"
+        + ("; service and sender at SCHED_FIFO" if args.realtime else "")
+    )
+    print(
+        "| IMU rate | sent | lost | kept up | latency p50 | p99 | max | sender late p99 "
+        "| service CPU |"
+    )
+    print("|---:|---:|---:|---|---:|---:|---:|---:|---:|")
+    for run in runs:
+        row = run.row()
+        print(
+            f"| {run.rate:g} Hz | {run.sent} | {run.lost} | {'yes' if run.kept_up else 'no'} | "
+            f"{row['p50 ms']:.3f} ms | {row['p99 ms']:.3f} ms | {row['max ms']:.2f} ms | "
+            f"{row['sender late p99 ms']:.3f} ms | {row['service CPU %']:.0f} % |"
+        )
+    best = highest_sustained(runs)
+    if best is None:
+        print("highest rate without loss (and kept up): none of these")
+    else:
+        print(
+            f"highest rate without loss (and kept up): {best.rate:g} Hz "
+            f"(p99 {best.percentile(99):.3f} ms)"
+        )
 
 
 def print_replay(replayed: dict[str, float], args: argparse.Namespace) -> None:

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Mapping
 
 MAVEST = [sys.executable, "-m", "mavest.cli"]
 READY_LINE = "mavest: listening on"
@@ -23,14 +24,21 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
 
 class ServiceProcess:
     """Starts ``mavest run ARGUMENTS`` and returns once it listens; ``log`` collects its
-    standard error, :meth:`stop` sends SIGINT as Ctrl-C would."""
+    standard error, :meth:`stop` sends SIGINT as Ctrl-C would. ``env``: its environment
+    (default: this process's), e.g. another PYTHONPATH to run another version of mavest."""
 
-    def __init__(self, *arguments: str, start_timeout: float = 180.0) -> None:
+    def __init__(
+        self,
+        *arguments: str,
+        start_timeout: float = 180.0,
+        env: Mapping[str, str] | None = None,
+    ) -> None:
         self.process = subprocess.Popen(
             [*MAVEST, "run", *arguments],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            env=env,
         )
         self.log: list[str] = []
         self._ready = threading.Event()

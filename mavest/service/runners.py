@@ -403,7 +403,7 @@ async def run_live(
     with stop_on_signals(stop) as stopping:
         # Compile (or load) the filter before listening: the first IMU packet must not
         # wait for it.
-        Estimator(config.estimator)
+        _warm_up(config)
         opened = _Opened(outputs)
         links: list[Link] = [make_link(e) for e in endpoints]
         pipeline = Pipeline(
@@ -437,6 +437,19 @@ async def run_live(
     return report
 
 
+def _warm_up(config: ServiceConfig) -> None:
+    """Load the compiled kernels the first IMU sample needs, so that it does not wait.
+
+    Building an estimator loads the filter's (or compiles them, the first time);
+    the Euler angles of an estimate, which every ATTITUDE carries, come from a kernel
+    loaded at its first call: ~25 ms that the first sample, and the ones queued
+    behind it, would otherwise wait.
+    """
+    estimator = Estimator(config.estimator)
+    estimate = estimator.update(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, -9.80665))
+    _ = estimate.euler
+
+
 async def _serve(
     pipeline: Pipeline,
     links: list[Link],
@@ -448,6 +461,9 @@ async def _serve(
     tasks: list[asyncio.Task[None]],
 ) -> None:
     """Open the links, start the timers, wait for the stop (cleanup is the caller's)."""
+    # Before the first packet can arrive: the full collection takes ~0.1 s, which the
+    # first samples would wait for (and "listening on" is what a vehicle may wait for).
+    _settle_heap()
     for link in links:
         await link.start(pipeline.on_bytes)
     log.info(
@@ -455,7 +471,6 @@ async def _serve(
         links[0],
         "".join(f", sending to {link}" for link in links[1:]),
     )
-    _settle_heap()
     if ready is not None:
         ready.set()
     if config.output.heartbeat_rate > 0:
