@@ -1,4 +1,6 @@
-"""Autopilot onboard logs: loaders, units and frames, mavest against the autopilot, the tool.
+"""Autopilot onboard logs: loaders, units and frames, scoring, mavest against the autopilot.
+
+The table over all logs is tools/evidence.py's (tests/test_evidence_tool.py).
 
 The logs are third-party files in the shared data folder; the tests that need them skip,
 naming MAVEST_DATA, when it is absent (a fresh clone has none). The bounds below were
@@ -12,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from tool_module import load_tool
 
 from mavest import estimate
 from mavest.datasets import DATA_ENV_VAR, data_root
@@ -25,11 +26,9 @@ from mavest.datasets.autopilot_logs import (
     load_ulog,
     log_path,
 )
+from mavest.evaluation.logs import Segment, score, score_segments, slerp_onto
 
 G0 = 9.80665
-
-
-tool = load_tool("autopilot_logs")
 
 
 def shared_log(relative: str) -> Path:
@@ -70,10 +69,10 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def inclination_rmse(log: AutopilotLog, q: np.ndarray, start: float, end: float) -> float:
     """Inclination RMSE (°) of q (at log.t) slerped onto the reference times in [start, end)."""
-    inside, q_at_ref = tool.slerp_onto(log.t, q, log.reference_t)
+    inside, q_at_ref = slerp_onto(log.t, q, log.reference_t)
     times = log.reference_t[inside]
     chosen = (times >= start) & (times < end)
-    return tool.score(q_at_ref[chosen], log.reference_q[inside][chosen]).inclination
+    return score(q_at_ref[chosen], log.reference_q[inside][chosen]).inclination
 
 
 # --------------------------------------------------------------------------
@@ -109,26 +108,34 @@ def test_wrong_files_raise_value_error(tmp_path: Path) -> None:
 def test_slerp_and_score_on_known_rotations() -> None:
     # Roll 0° at t = 0 and 10° at t = 1: slerp gives 5° at t = 0.5; t = 2 is outside.
     q = Rotation.from_euler("x", [[0.0], [10.0]], degrees=True).as_quat()[:, [3, 0, 1, 2]]
-    inside, q_mid = tool.slerp_onto(np.array([0.0, 1.0]), q, np.array([0.5, 2.0]))
+    inside, q_mid = slerp_onto(np.array([0.0, 1.0]), q, np.array([0.5, 2.0]))
     assert inside.tolist() == [True, False]
     reference = Rotation.from_euler("x", [[5.0]], degrees=True).as_quat()[:, [3, 0, 1, 2]]
-    s = tool.score(q_mid, reference)
+    s = score(q_mid, reference)
     assert s.n == 1 and s.roll == pytest.approx(0.0, abs=1e-9)
     # A 2° pitch error with any heading: pitch and inclination 2°, roll 0°.
     est = Rotation.from_euler("ZYX", [[30.0, 2.0, 0.0]], degrees=True).as_quat()[:, [3, 0, 1, 2]]
     ref = Rotation.from_euler("ZYX", [[30.0, 0.0, 0.0]], degrees=True).as_quat()[:, [3, 0, 1, 2]]
-    s = tool.score(est, ref)
+    s = score(est, ref)
     assert (s.roll, s.pitch, s.inclination) == pytest.approx((0.0, 2.0, 2.0), abs=1e-9)
 
 
-def test_tool_exits_2_without_the_data_folder(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
-) -> None:
-    monkeypatch.setenv(DATA_ENV_VAR, str(tmp_path / "absent"))
-    assert tool.main([]) == 2
-    captured = capsys.readouterr()
-    assert captured.out == ""
-    assert captured.err.count("\n") == 1 and DATA_ENV_VAR in captured.err
+def test_segments_share_the_reference_times_all_candidates_cover() -> None:
+    # A constant 1° roll error; one candidate starts at 1 s, so both are scored from 1 s.
+    reference_t = np.arange(0.0, 4.0, 0.5)
+    level = np.tile([1.0, 0.0, 0.0, 0.0], (len(reference_t), 1))
+    rolled = Rotation.from_euler("x", 1.0, degrees=True).as_quat()[[3, 0, 1, 2]]
+    candidates = {
+        "whole": (np.arange(0.0, 4.0, 0.1), np.tile(rolled, (40, 1))),
+        "late": (np.arange(1.0, 4.0, 0.1), np.tile(rolled, (30, 1))),
+    }
+    scores = score_segments(
+        candidates, reference_t, level, [Segment("early", 0.0, 2.0), Segment("all", 0, np.inf)]
+    )
+    assert scores["early"]["whole"].n == scores["early"]["late"].n == 2  # 1.0 and 1.5 s
+    assert scores["all"]["late"].n == 6  # 1.0 … 3.5 s
+    assert scores["all"]["whole"].inclination == pytest.approx(1.0, abs=1e-9)
+    assert Segment("crash", 200.0, np.inf).describe(242.6) == "crash 200–243 s"
 
 
 # --------------------------------------------------------------------------
@@ -174,6 +181,22 @@ def test_log171_ahrs_trim_puts_att_in_the_imu_frame(log171: AutopilotLog) -> Non
     assert gravity_direction_error_deg(log171, 20.0, 55.0) < 0.2
     untrimmed = load_dataflash(shared_log(DATAFLASH_LOG171), apply_ahrs_trim=False)
     assert gravity_direction_error_deg(untrimmed, 20.0, 55.0) > 1.0
+
+
+def test_log171_other_references(log171: AutopilotLog) -> None:
+    sources = [reference.source for reference in log171.other_references]
+    assert sources == ["EKF1 + AHRS_TRIM", "AHR2 + AHRS_TRIM"]
+    ekf1, ahr2 = log171.other_references
+    # EKF1's first 24 rows (before 2.44 s) hold no attitude yet and are dropped.
+    assert len(ekf1.t) == 2383 - 24 and ekf1.t[0] == pytest.approx(2.442)
+    # From 10 s on ArduCopter 3.3's ATT is the EKF's output: EKF1 equals it (logged 0.01°).
+    later = log171.reference_t >= 10.0
+    _, ekf1_at_att = slerp_onto(ekf1.t, ekf1.q, log171.reference_t[later])
+    assert score(ekf1_at_att, log171.reference_q[later]).inclination < 0.01
+    # AHR2 (DCM) is independent but in the same frame: at rest the accelerometer's gravity
+    # is 0.20° off its prediction (1.15° without the trim).
+    as_main = AutopilotLog(**{**log171.__dict__, "reference_t": ahr2.t, "reference_q": ahr2.q})
+    assert gravity_direction_error_deg(as_main, 20.0, 55.0) < 0.3
 
 
 def test_log171_matches_pymavlink_raw_reading(log171: AutopilotLog) -> None:
@@ -250,22 +273,3 @@ def test_mavest_on_log171_against_att(log171: AutopilotLog) -> None:
     assert inclination_rmse(log171, q, 20.0, 60.0) < 0.2
     assert inclination_rmse(log171, q, 0.0, 60.0) < 0.8
     assert inclination_rmse(log171, q, 60.0, 200.0) < 6.0
-
-
-def test_tool_prints_one_table(capsys: pytest.CaptureFixture[str]) -> None:
-    for relative in (DATAFLASH_LOG171, ULOG_REAL, ULOG_SIMULATOR):
-        shared_log(relative)
-    pytest.importorskip("pyulog", reason="pyulog (dev extra) is needed to read ULog files")
-    assert tool.main(["--markdown"]) == 0
-    out = capsys.readouterr().out
-    table = [line for line in out.splitlines() if line.startswith("|")]
-    assert table[0].startswith("| log | segment | against | n | filter |")
-    rows = [line.strip("| ").split(" | ") for line in table[2:]]
-    # log171: 4 segments × 3 filters; pyulog_sample: 3 × 3; simulator: 3 + 4 (truth).
-    assert len(rows) == 12 + 9 + 7
-    by_key = {(r[0], r[1].split()[0], r[2], r[4]): [float(x) for x in r[5:]] for r in rows}
-    # The simulator's own estimate against its truth: measured 0.22° inclination.
-    autopilot = by_key[("PX4 simulator", "all", "groundtruth", "autopilot")]
-    assert 0.0 < autopilot[2] < 0.4
-    assert by_key[("PX4 simulator", "all", "groundtruth", "mavest")][2] < 0.4
-    assert by_key[("PX4 pyulog_sample", "rest", "vehicle_attitude", "mavest")][2] < 0.1

@@ -9,8 +9,10 @@ body → NED, SI units, float64, time in seconds from the first IMU sample.
   field ``I`` in newer firmware): ``GyrX..Z`` rad/s, ``AccX..Z`` m/s², already rotated
   by ``AHRS_ORIENTATION`` into the vehicle's FRD frame and corrected by the stored
   accelerometer/gyro calibration. The reference is ``ATT`` (``Roll``, ``Pitch``,
-  ``Yaw`` in degrees, ZYX Euler angles of the NED attitude). Time is ``TimeUS`` (µs)
-  or, in older firmware such as ArduCopter 3.3, ``TimeMS`` (ms) since boot.
+  ``Yaw`` in degrees, ZYX Euler angles of the NED attitude). Where logged, ``EKF1``
+  (the EKF's own angles) and ``AHR2`` (the secondary AHRS: DCM when the EKF is
+  primary) come along as further references, same angles and trim. Time is ``TimeUS``
+  (µs) or, in older firmware such as ArduCopter 3.3, ``TimeMS`` (ms) since boot.
 * PX4 ULog (``.ulg``), :func:`load_ulog`, read with pyulog. IMU samples from
   ``sensor_combined`` (``gyro_rad`` rad/s, ``accelerometer_m_s2`` m/s², FRD, board
   rotation already applied), time ``timestamp`` (µs since boot) plus, for the
@@ -27,7 +29,11 @@ the loader adds the trim back (``apply_ahrs_trim=True``): on log171 this removes
 accelerometer's gravity direction and ``ATT``. Until the EKF is ready (log171: its first
 ~9 s) ``ATT`` comes from ArduPilot's DCM filter, which applies the trim as a rotation
 rather than to the angles; near level, with trims of about a degree, the two agree to
-~0.01°.
+~0.01°. ``EKF1`` and ``AHR2`` carry the same trim (measured on log171 at rest: the
+accelerometer's gravity direction is 1.27° and 1.15° off without it, 0.06° and 0.20°
+with it). On log171 ``EKF1`` equals ``ATT`` to the logged 0.01° from 10 s on (before
+that ``ATT`` is DCM's); its first 24 rows, logged before the EKF had an attitude, are
+dropped.
 
 The samples are kept as logged, calibration errors included: at rest log171's ``IMU``
 reads 9.59 m/s² (``IMU2`` 9.41, ``IMU3`` 9.13), PX4's real board 9.70 m/s².
@@ -52,6 +58,7 @@ __all__ = [
     "ULOG_REAL",
     "ULOG_SIMULATOR",
     "AutopilotLog",
+    "Reference",
     "load_dataflash",
     "load_ulog",
     "log_path",
@@ -72,6 +79,25 @@ _DATAFLASH_MESSAGE_HEADER = bytes([0xA3, 0x95])
 _PX4_RELATIVE_TIMESTAMP_INVALID = 2**31 - 1
 
 
+# Dataflash messages with the autopilot's Roll, Pitch, Yaw (degrees) read besides ATT.
+_DATAFLASH_OTHER_REFERENCES = ("EKF1", "AHR2")
+
+
+@dataclass(frozen=True)
+class Reference:
+    """One more attitude the autopilot logged, beside the main reference.
+
+    Attributes:
+        source: what it was read from, e.g. ``"AHR2 + AHRS_TRIM"``.
+        t: (M,) times in s, the log's time base.
+        q: (M, 4) attitude (w, x, y, z), FRD body → NED, in the IMU samples' body frame.
+    """
+
+    source: str
+    t: np.ndarray
+    q: np.ndarray
+
+
 @dataclass(frozen=True)
 class AutopilotLog:
     """IMU samples and the autopilot's attitude from one onboard log, in mavest conventions.
@@ -90,6 +116,8 @@ class AutopilotLog:
         truth_q: (K, 4) true attitude (w, x, y, z), FRD → NED, or None.
         boot_time: autopilot time (s since boot) of ``t = 0``.
         notes: what the loader chose or found (IMU instance, trim, dropped samples).
+        other_references: further attitudes the autopilot logged (ArduPilot: ``EKF1``,
+            ``AHR2``), each in the same frame and time base as ``reference_q``.
     """
 
     name: str
@@ -104,6 +132,7 @@ class AutopilotLog:
     truth_q: np.ndarray | None
     boot_time: float
     notes: tuple[str, ...]
+    other_references: tuple[Reference, ...] = ()
 
     @property
     def rate(self) -> float:
@@ -165,10 +194,10 @@ def _dataflash_time(message: dict[str, Any]) -> float:
 
 
 def _read_dataflash(path: Path) -> tuple[dict[str, list[dict[str, Any]]], dict[str, float]]:
-    """IMU*, ATT messages (as dicts) and the last value of every parameter."""
+    """IMU*, ATT, EKF1, AHR2 messages (as dicts) and the last value of every parameter."""
     from pymavlink import mavutil
 
-    types = [*_DATAFLASH_IMU_TYPES, "ATT", "PARM"]
+    types = [*_DATAFLASH_IMU_TYPES, "ATT", *_DATAFLASH_OTHER_REFERENCES, "PARM"]
     messages: dict[str, list[dict[str, Any]]] = {name: [] for name in types if name != "PARM"}
     parameters: dict[str, float] = {}
     try:
@@ -233,50 +262,82 @@ def load_dataflash(
     gyro = np.array([[m["GyrX"], m["GyrY"], m["GyrZ"]] for m in imu], dtype=np.float64)
     accel = np.array([[m["AccX"], m["AccY"], m["AccZ"]] for m in imu], dtype=np.float64)
 
-    att = messages["ATT"]
-    att_boot_t = np.array([_dataflash_time(m) for m in att])
-    att_keep = _increasing(att_boot_t)
-    euler_deg = np.array([[m["Roll"], m["Pitch"], m["Yaw"]] for m in att], dtype=np.float64)
-    euler_deg = euler_deg[att_keep]
+    att_boot_t, euler_deg, att_dropped = _dataflash_angles(messages["ATT"])
     notes = [
         f"IMU instance {imu_instance} ({imu_kind}), {len(imu)} samples",
         f"t = 0 is {imu_boot_t[0]:.3f} s after boot",
     ]
-    if not np.all(keep) or not np.all(att_keep):
+    if not np.all(keep) or att_dropped:
         notes.append(
-            f"dropped {int(np.sum(~keep))} IMU and {int(np.sum(~att_keep))} ATT samples "
+            f"dropped {int(np.sum(~keep))} IMU and {att_dropped} ATT samples "
             "whose time did not increase"
         )
-    trim_x = parameters.get("AHRS_TRIM_X", 0.0)
-    trim_y = parameters.get("AHRS_TRIM_Y", 0.0)
-    reference_source = "ATT"
-    if apply_ahrs_trim and (trim_x or trim_y):
-        # The EKF logs euler − trim; adding the trim back gives the IMU frame's angles.
-        euler_deg[:, 0] += np.degrees(trim_x)
-        euler_deg[:, 1] += np.degrees(trim_y)
-        reference_source = "ATT + AHRS_TRIM"
+    trim_deg = np.degrees([parameters.get("AHRS_TRIM_X", 0.0), parameters.get("AHRS_TRIM_Y", 0.0)])
+    trimmed = apply_ahrs_trim and bool(np.any(trim_deg))
+    suffix = " + AHRS_TRIM" if trimmed else ""
+    if trimmed:
+        logged = ", ".join(["ATT", *(k for k in _DATAFLASH_OTHER_REFERENCES if messages[k])])
         notes.append(
-            f"AHRS_TRIM_X {np.degrees(trim_x):.2f}°, AHRS_TRIM_Y {np.degrees(trim_y):.2f}° "
-            "added to ATT roll, pitch"
+            f"AHRS_TRIM_X {trim_deg[0]:.2f}°, AHRS_TRIM_Y {trim_deg[1]:.2f}° "
+            f"added to the roll, pitch of {logged}"
         )
-    elif trim_x or trim_y:
+    elif np.any(trim_deg):
         notes.append("AHRS trim not applied: ATT is the trimmed vehicle frame")
 
     t0 = float(imu_boot_t[0])
+
+    def attitude(euler: np.ndarray) -> np.ndarray:
+        if trimmed:
+            # The autopilot logs euler − trim; adding the trim back gives the IMU frame's.
+            euler = euler.copy()
+            euler[:, :2] += trim_deg
+        return quats_from_euler_zyx(np.radians(euler))
+
+    others = []
+    for kind in _DATAFLASH_OTHER_REFERENCES:
+        if not messages[kind]:
+            continue
+        boot_t, euler, _ = _dataflash_angles(messages[kind])
+        waiting = _leading_uninitialised(euler)
+        if waiting:
+            notes.append(f"{kind}: first {waiting} rows dropped (no attitude yet: zero yaw)")
+        boot_t, euler = boot_t[waiting:], euler[waiting:]
+        if len(boot_t):
+            others.append(Reference(kind + suffix, boot_t - t0, attitude(euler)))
+
     return AutopilotLog(
         name=path.stem,
         autopilot="ArduPilot",
         t=imu_boot_t - t0,
         gyro=gyro,
         accel=accel,
-        reference_t=att_boot_t[att_keep] - t0,
-        reference_q=quats_from_euler_zyx(np.radians(euler_deg)),
-        reference_source=reference_source,
+        reference_t=att_boot_t - t0,
+        reference_q=attitude(euler_deg),
+        reference_source="ATT" + suffix,
         truth_t=None,
         truth_q=None,
         boot_time=t0,
         notes=tuple(notes),
+        other_references=tuple(others),
     )
+
+
+def _dataflash_angles(messages: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray, int]:
+    """Boot times (s), (M, 3) Roll, Pitch, Yaw in degrees, and how many rows were dropped
+    because their time did not increase."""
+    boot_t = np.array([_dataflash_time(m) for m in messages])
+    keep = _increasing(boot_t)
+    euler_deg = np.array([[m["Roll"], m["Pitch"], m["Yaw"]] for m in messages], dtype=np.float64)
+    return boot_t[keep], euler_deg[keep], int(np.sum(~keep))
+
+
+def _leading_uninitialised(euler_deg: np.ndarray) -> int:
+    """How many first rows an EKF logged before it had an attitude: rows equal to the
+    first one while its yaw is exactly 0 (the trim's negative and no heading)."""
+    if len(euler_deg) == 0 or euler_deg[0, 2] != 0.0:
+        return 0
+    same = np.all(euler_deg == euler_deg[0], axis=1)
+    return len(same) if np.all(same) else int(np.argmin(same))
 
 
 # --------------------------------------------------------------------------

@@ -4,6 +4,8 @@
 RMSE over the movement phases). ``peers`` runs VQF, x-io Fusion and the ``ahrs``
 package's Madgwick and Mahony filters on mavest's conventions (FRD body, NED world), so
 that every number in a comparison comes from the same data and the same scoring.
+``accuracy`` scores them on BROAD; ``logs`` against an attitude logged at other times (an
+autopilot's own, a simulator's truth).
 """
 
 from __future__ import annotations

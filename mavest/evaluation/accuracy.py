@@ -1,4 +1,4 @@
-"""Accuracy on BROAD beside the peers: the scores behind tools/accuracy.py and its test.
+"""Accuracy on BROAD beside the peers: the scores behind tools/evidence.py and the tests.
 
 The dataset's scoring: RMSE over the ``movement`` samples with valid truth, of
 the inclination (6-D: heading is free) per trial, then the mean over trials.
@@ -14,16 +14,41 @@ import numpy as np
 from mavest.datasets.broad import BroadTrial
 from mavest.estimator import EstimatorConfig, estimate
 from mavest.evaluation.metrics import rmse_deg
-from mavest.evaluation.peers import PEERS
+from mavest.evaluation.peers import PEERS, PeerAdapter
 
 Filter = Callable[[BroadTrial], np.ndarray]
+
+#: mavest's variants shown beside its default: each changes one choice of the default.
+MAVEST_VARIANTS: dict[str, EstimatorConfig] = {
+    "no rest detection": EstimatorConfig(rest_detection=False),
+    "ekf": EstimatorConfig(update="ekf"),
+    "sigma_point": EstimatorConfig(update="sigma_point"),
+    "without low-pass": EstimatorConfig(accel_lowpass_time=0.0),
+}
+
+
+def mavest_adapter(config: EstimatorConfig | None = None) -> PeerAdapter:
+    """mavest with ``config``, called like a peer adapter: ``run(t, gyro, accel, mag, rate)``
+    (``rate`` is unused: mavest takes each sample's own time step)."""
+
+    def run(
+        t: np.ndarray,
+        gyro: np.ndarray,
+        accel: np.ndarray,
+        mag: np.ndarray | None = None,
+        rate: float | None = None,
+    ) -> np.ndarray:
+        return estimate(t, gyro, accel, mag, config).q
+
+    return run
 
 
 def mavest_filter(config: EstimatorConfig | None = None, mag: bool = False) -> Filter:
     """mavest in 6-D (gyro and accelerometer), or 9-D with ``mag``, with ``config``."""
+    adapter = mavest_adapter(config)
 
     def run(trial: BroadTrial) -> np.ndarray:
-        return estimate(trial.t, trial.gyro, trial.accel, trial.mag if mag else None, config).q
+        return adapter(trial.t, trial.gyro, trial.accel, trial.mag if mag else None)
 
     return run
 

@@ -137,9 +137,10 @@ class StreamClock:
 
     def read_run(self, ticks: np.ndarray, tick: float) -> np.ndarray:
         """The times of the leading samples that :meth:`read` would call plainly NEXT
-        (later than the last, not a gap, no wrap or jump), taken as read; the clock is
-        left as after them. For many samples at once (the replay's fast path): the
-        first sample of any other kind is left for :meth:`read`.
+        (later than the last, not a gap, no wrap or jump), without moving the clock:
+        :meth:`take_run` then takes as many of them as are used. For many samples at
+        once (the replay's fast path); the first sample of any other kind is left for
+        :meth:`read`.
         """
         if self._last_ticks is None or not ticks.shape[0]:
             return np.empty(0)

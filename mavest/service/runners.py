@@ -358,14 +358,14 @@ def _feed(feed: bulk.BulkFeed, records: RecordIndex, period_us: int, next_us: in
     n = len(records)
     while start < n:
         end = n
-        if period_us:
+        if period_us and not pipeline.vehicles:
+            # none to speak for yet: only a decoded record can bring one
+            decoded = np.flatnonzero(feed.kinds[records.message_id[start:]] != 0)
+            end = start + int(decoded[0]) + 1 if decoded.shape[0] else n
+        elif period_us:
             due = np.flatnonzero(records.stamp[start:] >= next_us)
             if due.shape[0]:
                 end = start + int(due[0]) + 1
-                if not pipeline.vehicles:
-                    # none to speak for yet: only a decoded record can bring one
-                    decoded = np.flatnonzero(feed.kinds[records.message_id[start:end]] != 0)
-                    end = start + int(decoded[0]) + 1 if decoded.shape[0] else end
         feed.feed(records.part(slice(start, end)))
         stamp = int(records.stamp[end - 1])
         if period_us and stamp >= next_us and pipeline.vehicles:
