@@ -28,7 +28,13 @@ import numpy as np
 
 from mavest import so3
 from mavest._jit import kernel
-from mavest.mavlink.messages import IMU_FORMATS, mavlink2
+from mavest.mavlink.messages import (
+    _HIGHRES_INERTIAL_BITS,
+    _HIGHRES_MAG_BITS,
+    _INSTANCE_BY_NAME,
+    IMU_FORMATS,
+    mavlink2,
+)
 
 _MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as TlogReader (and pymavlink)
 
@@ -223,10 +229,6 @@ class ImuFields(NamedTuple):
     saturated: np.ndarray  # bool
 
 
-_HIGHRES_INERTIAL = 0b111111
-_HIGHRES_MAG = 0b111000000
-
-
 def imu_fields(name: str, payloads: np.ndarray) -> ImuFields:
     """Decode IMU payloads of message ``name`` (one of ``IMU_FORMATS``) to SI units."""
     fmt = IMU_FORMATS[name]
@@ -246,8 +248,8 @@ def imu_fields(name: str, payloads: np.ndarray) -> ImuFields:
         saturated = np.zeros(n, dtype=bool)
     if name == "HIGHRES_IMU":
         updated = payloads["fields_updated"].astype(np.int64)
-        inertial_fresh = updated & _HIGHRES_INERTIAL == _HIGHRES_INERTIAL
-        mag_fresh = updated & _HIGHRES_MAG == _HIGHRES_MAG
+        inertial_fresh = updated & _HIGHRES_INERTIAL_BITS == _HIGHRES_INERTIAL_BITS
+        mag_fresh = updated & _HIGHRES_MAG_BITS == _HIGHRES_MAG_BITS
         instance = payloads["id"].astype(np.int64)
     else:
         inertial_fresh = np.ones(n, dtype=bool)
@@ -255,7 +257,7 @@ def imu_fields(name: str, payloads: np.ndarray) -> ImuFields:
         if name == "RAW_IMU":
             instance = payloads["id"].astype(np.int64)
         else:
-            instance = np.full(n, _SCALED_INSTANCE[name], dtype=np.int64)
+            instance = np.full(n, _INSTANCE_BY_NAME[name], dtype=np.int64)
     return ImuFields(
         payloads[fmt.time_field].astype(np.int64),
         axes("gyro", fmt.gyro_scale),
@@ -266,9 +268,6 @@ def imu_fields(name: str, payloads: np.ndarray) -> ImuFields:
         instance,
         saturated,
     )
-
-
-_SCALED_INSTANCE = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
 
 
 def simstate_euler(payloads: np.ndarray) -> np.ndarray:
