@@ -144,6 +144,21 @@ class StreamClock:
         """
         if self._last_ticks is None or not ticks.shape[0]:
             return np.empty(0)
+        count, times, _ = self._plain_run(ticks, tick)
+        return times[:count]
+
+    def take_run(self, ticks: np.ndarray, tick: float, count: int) -> None:
+        """Advance the clock over the first ``count`` samples :meth:`read_run` timed."""
+        if count == 0:
+            return
+        _, _, periods = self._plain_run(ticks[:count], tick)
+        self._candidate = None
+        self._last_ticks = int(ticks[count - 1])
+        self._period = float(periods[count - 1])
+
+    def _plain_run(self, ticks: np.ndarray, tick: float) -> tuple[int, np.ndarray, np.ndarray]:
+        """(how many lead plainly, their times, the smoothed period after each)."""
+        assert self._last_ticks is not None
         times = np.empty(ticks.shape[0])
         periods = np.empty(ticks.shape[0])
         count = _plain_run(
@@ -158,28 +173,7 @@ class StreamClock:
             times,
             periods,
         )
-        return times[:count]
-
-    def take_run(self, ticks: np.ndarray, tick: float, count: int) -> None:
-        """Advance the clock over the first ``count`` samples :meth:`read_run` timed."""
-        if count == 0:
-            return
-        periods = np.empty(count)
-        _plain_run(
-            ticks[:count],
-            self._last_ticks,
-            self._offset,
-            self._period,
-            tick,
-            self.min_gap,
-            self.gap_periods,
-            self.max_jump,
-            np.empty(count),
-            periods,
-        )
-        self._candidate = None
-        self._last_ticks = int(ticks[count - 1])
-        self._period = float(periods[count - 1])
+        return count, times, periods
 
 
 # Raw timestamps beyond this are left to the exact integer arithmetic of read().

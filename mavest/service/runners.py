@@ -279,23 +279,12 @@ async def replay(
     records = iter(reader)
     try:
         while True:
-            if feed is not None:
-                clean = reader.scan(_SCAN_RECORDS)
-                if len(clean):
-                    next_heartbeat_us = _feed(feed, clean, heartbeat_us, next_heartbeat_us)
-                    last_us = int(clean.stamp[-1])
-                    records = iter(reader)  # the careful reader goes on from here
-                else:
-                    record = next(records, None)
-                    if record is None:
-                        break
-                    last_us = record.timestamp_us
-                    next_heartbeat_us = _one_record(
-                        pipeline, tlog, record, heartbeat_us, next_heartbeat_us
-                    )
-                    if reader.stats.records % 256:
-                        continue
-            else:
+            clean = reader.scan(_SCAN_RECORDS) if feed is not None else None
+            if clean is not None and len(clean):
+                next_heartbeat_us = _feed(feed, clean, heartbeat_us, next_heartbeat_us)
+                last_us = int(clean.stamp[-1])
+                records = iter(reader)  # the careful reader goes on from here
+            else:  # one record the careful way (or damage: the reader resynchronises)
                 record = next(records, None)
                 if record is None:
                     break
