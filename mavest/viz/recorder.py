@@ -325,11 +325,7 @@ class RerunRecorder:
         block[:, _FLAGS] = flags
         buffer.blocks.append(block.reshape(-1))
         buffer.packed += n
-        if (
-            buffer.packed >= self.batch_rows
-            or time.monotonic() - self._last_flush >= self.batch_seconds
-        ):
-            self.flush()
+        self._flush_if_due(buffer)
 
     def on_references(
         self, stream: Any, source: str, t: np.ndarray, euler: np.ndarray, receive_us: np.ndarray
@@ -337,10 +333,7 @@ class RerunRecorder:
         """Many references of one source, in order: as :meth:`on_reference` for each."""
         if not t.shape[0]:
             return
-        buffer = self._last if stream.key is self._last_key else self._switch(stream)
-        references = buffer.references.get(source)
-        if references is None:
-            references = buffer.references[source] = _References(self._slots())
+        references = self._references(stream, source)
         starts_slow, starts_pose = references.slots.advance_many(t)
         for i in np.flatnonzero(starts_slow | starts_pose).tolist():
             references.rows.append(
@@ -358,20 +351,27 @@ class RerunRecorder:
         buffer.blocks.append(_packed(buffer.rows))
         buffer.packed += len(buffer.rows)
         buffer.rows.clear()
+        self._flush_if_due(buffer)
+
+    def _flush_if_due(self, buffer: _StreamBuffer) -> None:
         if (
             buffer.packed >= self.batch_rows
             or time.monotonic() - self._last_flush >= self.batch_seconds
         ):
             self.flush()
 
-    def on_reference(
-        self, stream: Any, source: str, t: float, euler: tuple, receive_us: int = 0
-    ) -> None:
-        # at the IMU rate for a simulator's truth: kept only if it starts a slot
+    def _references(self, stream: Any, source: str) -> _References:
         buffer = self._last if stream.key is self._last_key else self._switch(stream)
         references = buffer.references.get(source)
         if references is None:
             references = buffer.references[source] = _References(self._slots())
+        return references
+
+    def on_reference(
+        self, stream: Any, source: str, t: float, euler: tuple, receive_us: int = 0
+    ) -> None:
+        # at the IMU rate for a simulator's truth: kept only if it starts a slot
+        references = self._references(stream, source)
         slots = references.slots
         if not slots.since <= t < slots.until:
             slow, pose = slots.advance(t)
