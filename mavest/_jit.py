@@ -16,10 +16,12 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numba
-from numba import njit
+from numba import njit, typeof
 
 
 def _sources_digest() -> str:
@@ -60,3 +62,17 @@ def cache_is_warm() -> bool:
 # interpreter; error_model="numpy" makes x/0 give inf/nan as NumPy does, which
 # the kernels check for, instead of raising.
 kernel = njit(cache=True, nogil=True, error_model="numpy")
+
+
+def without_dispatch(function: Any, *example: Any) -> Callable[..., Any]:
+    """``function`` compiled for the types of ``example`` (called once with it, so the
+    example must be safe to change), as a callable that skips numba's type dispatch.
+
+    Resolving a structured array's numba type on every call costs more than a
+    small kernel does; a caller whose records keep their dtypes for life resolves
+    it once here. Falls back to the dispatcher if numba's internals differ (the
+    overloads' entry points are not a documented interface).
+    """
+    function(*example)
+    overload = getattr(function, "overloads", {}).get(tuple(typeof(a) for a in example))
+    return overload.entry_point if overload is not None else function

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from mavest import so3
-from mavest._jit import kernel
+from mavest._jit import kernel, without_dispatch
 from mavest.estimator.config import EstimatorConfig
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.recursion import step
@@ -72,22 +72,27 @@ def _step_scalars(
 
 
 def _compiled_step(state: np.ndarray, coefficients: np.ndarray) -> Callable[..., tuple]:
-    """The compiled step for these record types, without numba's per-call type dispatch.
-
-    Resolving a structured array's numba type on every call costs more than the
-    filter step itself; the state and coefficients keep their dtypes for life, so
-    it is resolved once here. Falls back to the dispatcher if numba's layout
-    differs (it is not a documented interface).
-    """
+    """The compiled step for these record types, without numba's per-call type dispatch
+    (the state and coefficients keep their dtypes for life)."""
     nan = math.nan
-    _step_scalars(
-        state.copy(), coefficients, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.8, nan, nan, nan, nan, nan, nan
+    return without_dispatch(
+        _step_scalars,
+        state.copy(),
+        coefficients,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        -9.8,
+        nan,
+        nan,
+        nan,
+        nan,
+        nan,
+        nan,
     )
-    try:
-        signature = next(iter(_step_scalars.overloads))
-        return _step_scalars.overloads[signature].entry_point
-    except (AttributeError, StopIteration):  # pragma: no cover - numba internals moved
-        return _step_scalars
 
 
 @kernel

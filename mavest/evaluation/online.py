@@ -14,13 +14,11 @@ replay's fast path whole runs of estimates and references at once
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numba import typeof
 
-from mavest._jit import kernel
+from mavest._jit import kernel, without_dispatch
 
 Euler = tuple[float, float, float]
 
@@ -182,24 +180,6 @@ def _add_many(state: np.ndarray, kinds: np.ndarray, t: np.ndarray, euler: np.nda
         _add(s, kinds[i], t[i], euler[i, 0], euler[i, 1], euler[i, 2])
 
 
-_ENTRY_POINTS: dict[int, Callable[..., None]] = {}
-
-
-def _add_one_for(state: np.ndarray) -> Callable[..., None]:
-    """The compiled :func:`_add_one` for this state's record type, without numba's
-    per-call type dispatch (resolving a record type costs more than the call)."""
-    history = state["ours_t"].shape[1]
-    entry = _ENTRY_POINTS.get(history)
-    if entry is None:
-        _add_one(state.copy(), ESTIMATE, 0.0, 0.0, 0.0, 0.0)
-        entry = _add_one
-        for signature, overload in _add_one.overloads.items():
-            if signature[0].dtype == typeof(state).dtype:
-                entry = overload.entry_point
-        _ENTRY_POINTS[history] = entry
-    return entry
-
-
 class EulerComparison:
     """RMS differences between our ZYX angles and a reference's, after ``settle_time``."""
 
@@ -210,7 +190,8 @@ class EulerComparison:
         state["settle_time"] = settle_time
         state["max_span"] = max_span
         self._state = state
-        self._add_one = _add_one_for(state)
+        # one call costs less than numba's dispatch on the state record: skip it
+        self._add_one = without_dispatch(_add_one, state.copy(), ESTIMATE, 0.0, 0.0, 0.0, 0.0)
 
     @property
     def count(self) -> int:
