@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
+import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavest.estimator.config import STANDARD_GRAVITY
@@ -261,3 +262,8 @@ class Encoder:
 def time_boot_ms(t: float) -> int:
     """The uint32 ``time_boot_ms`` of a vehicle time in seconds (wrapping as the field does)."""
     return math.floor(t * 1000.0 + 1e-6) & 0xFFFFFFFF
+
+
+def time_boot_ms_many(t: np.ndarray) -> np.ndarray:
+    """:func:`time_boot_ms` of many times (int64), by the same arithmetic."""
+    return np.floor(t * 1000.0 + 1e-6).astype(np.int64) & 0xFFFFFFFF

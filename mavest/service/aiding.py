@@ -21,6 +21,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 GPS_MAX_AGE = 0.5  # s: a GPS acceleration older than this (vehicle time) is not used
 GPS_FIX_MAX_AGE = 2.0  # s: the last 3-D fix report must be this recent
 AIRSPEED_MAX_AGE = 2.0  # s: an older VFR_HUD airspeed is not used
@@ -74,6 +76,23 @@ class GpsAcceleration:
         if not 0.0 <= t - self.accel_t <= GPS_MAX_AGE:
             return None
         return self.accel
+
+    def at_many(self, t: np.ndarray) -> np.ndarray:
+        """:meth:`at` for many sample times (the replay's fast path): (n, 3), NaN rows
+        where it is unknown. The same rule, written for arrays."""
+        out = np.full((t.shape[0], 3), math.nan)
+        if self.accel is None:
+            return out
+        since_fix = t - self.fix_t
+        since_accel = t - self.accel_t
+        fresh = (
+            (since_fix >= 0.0)
+            & (since_fix <= GPS_FIX_MAX_AGE)
+            & (since_accel >= 0.0)
+            & (since_accel <= GPS_MAX_AGE)
+        )
+        out[fresh] = self.accel
+        return out
 
 
 def without_centripetal(

@@ -43,9 +43,16 @@ import numpy as np
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.online import ESTIMATE, REFERENCE
 from mavest.mavlink import bulk
-from mavest.mavlink.messages import IMU_FORMATS, IMU_MESSAGES, MAVLink, StreamKey, mavlink2
+from mavest.mavlink.messages import (
+    IMU_FORMATS,
+    IMU_MESSAGES,
+    MAVLink,
+    StreamKey,
+    mavlink2,
+    time_boot_ms_many,
+)
 from mavest.mavlink.tlog import TlogWriter
-from mavest.service.aiding import AIRSPEED_MAX_AGE, GPS_FIX_MAX_AGE, GPS_MAX_AGE
+from mavest.service.aiding import AIRSPEED_MAX_AGE
 from mavest.service.pipeline import (
     _HEADING_EVENTS,
     _HEALTH_EVENTS,
@@ -461,19 +468,10 @@ class BulkFeed:
         if stop <= start:
             return
         times = t[start:stop]
-        mode = self.pipeline.config.input.acceleration_aiding
-        gps = vehicle.gps
-        if mode in ("auto", "gps") and stream.estimator.heading_referenced and gps.accel:
-            since_fix = times - gps.fix_t
-            since_accel = times - gps.accel_t
-            fresh = (
-                (since_fix >= 0.0)
-                & (since_fix <= GPS_FIX_MAX_AGE)
-                & (since_accel >= 0.0)
-                & (since_accel <= GPS_MAX_AGE)
-            )
-            linear_accel[start:stop][fresh] = gps.accel
-        if mode in ("off", "gps") or (mode == "auto" and not vehicle.fixed_wing):
+        pipeline = self.pipeline
+        if pipeline._gps_aiding(stream):
+            linear_accel[start:stop] = vehicle.gps.at_many(times)
+        if not pipeline._airspeed_aiding(vehicle):
             return
         since = times - vehicle.airspeed_t
         unknown = np.isnan(linear_accel[start:stop, 0])
@@ -721,7 +719,7 @@ class BulkFeed:
         pipeline = self.pipeline
         q = steps.q[answered]
         rates = steps.gyro[answered] - steps.bias[answered]
-        stamps = np.floor(steps.t[answered] * 1000.0 + 1e-6).astype(np.int64) & 0xFFFFFFFF
+        stamps = time_boot_ms_many(steps.t[answered])
         encoder = pipeline._encoder(stream.key.system)
         mav = encoder._mav
         with_quaternion = pipeline.config.output.attitude_quaternion

@@ -501,17 +501,20 @@ class Pipeline:
         Only with heading from the magnetometer: the acceleration is known in the
         world frame, and a free (6-D) heading cannot turn it into the body.
         """
-        if self.config.input.acceleration_aiding not in ("auto", "gps"):
-            return None
-        if not stream.estimator.heading_referenced:
-            return None
-        return vehicle.gps.at(t)
+        return vehicle.gps.at(t) if self._gps_aiding(stream) else None
+
+    def _gps_aiding(self, stream: Stream) -> bool:
+        """Whether this stream's samples take the GPS acceleration when it is fresh."""
+        mode = self.config.input.acceleration_aiding
+        return mode in ("auto", "gps") and stream.estimator.heading_referenced
+
+    def _airspeed_aiding(self, vehicle: Vehicle) -> bool:
+        """Whether this vehicle's samples take the airspeed correction when it is fresh."""
+        mode = self.config.input.acceleration_aiding
+        return not (mode in ("off", "gps") or (mode == "auto" and not vehicle.fixed_wing))
 
     def _uses_airspeed(self, vehicle: Vehicle, t: float) -> bool:
-        mode = self.config.input.acceleration_aiding
-        if mode in ("off", "gps") or (mode == "auto" and not vehicle.fixed_wing):
-            return False
-        return 0.0 <= t - vehicle.airspeed_t <= AIRSPEED_MAX_AGE
+        return self._airspeed_aiding(vehicle) and 0.0 <= t - vehicle.airspeed_t <= AIRSPEED_MAX_AGE
 
     def _answer(
         self,
