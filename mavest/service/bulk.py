@@ -194,6 +194,8 @@ class _Steps:
         self.processing = processing  # s per sample: the batch's time divided among them
         self.t = series.t
         self.q = series.q
+        # ZYX angles, once: the comparisons, the recording and the answers all take them
+        self.euler = bulk.euler_rows(series.q)
         self.bias = series.bias
         self.flags = series.flags
         self.mag_used = series.mag_used & usable_mag
@@ -580,7 +582,7 @@ class BulkFeed:
             kept = self._book(stream, vehicle, steps, first, last)
             index = first + kept
         t = steps.t[index] if steps is not None else np.empty(0)
-        euler = bulk.euler_rows(steps.q[index]) if steps is not None else np.empty((0, 3))
+        euler = steps.euler[index] if steps is not None else np.empty((0, 3))
         rows = steps.rows[index] if steps is not None else index
         truth_rows = start + np.flatnonzero(decoded.kind[start:stop] == TRUTH)
         truth_t = self._compare(stream, decoded, t, euler, rows, truth_rows, last_t_before)
@@ -725,7 +727,7 @@ class BulkFeed:
         with_quaternion = pipeline.config.output.attitude_quaternion
         packets = bulk.attitude_packets(
             stamps,
-            bulk.euler_rows(q),
+            steps.euler[answered],
             rates,
             q if with_quaternion else None,
             encoder.system,
