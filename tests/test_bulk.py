@@ -24,7 +24,7 @@ from test_hostile_input import CASES, Flight, _tlog_bytes, clean_flights
 from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
 from mavest.mavlink import bulk
 from mavest.mavlink.clock import WRAP_TICKS, ClockEvent, StreamClock
-from mavest.mavlink.messages import IMU_MESSAGES, Encoder, MAVLink, decode_imu, mavlink2
+from mavest.mavlink.messages import IMU_MESSAGES, MAVLink, decode_imu, mavlink2
 from mavest.mavlink.tlog import TlogReader
 from mavest.service.config import ServiceConfig
 from mavest.service.runners import Outputs, RunReport, format_summary, replay
@@ -313,18 +313,24 @@ def test_attitude_packets_are_pymavlink_packets(with_quaternion: bool) -> None:
     rates[::5] = 0.0
     euler[::10, 2] = 0.0
     q[::7, 3] = 0.0
-    encoder = Encoder(42, 191)
-    encoder._mav.seq = 200  # the sequence number wraps inside the batch
+    mav = MAVLink(None, srcSystem=42, srcComponent=191)
+    mav.seq = 200  # the sequence number wraps inside the batch
+
+    def pymavlinks(message: Any) -> bytes:
+        packet = message.pack(mav)
+        mav.seq = (mav.seq + 1) % 256
+        return packet
+
     first, second = bulk.attitude_packets(
         stamps, euler, rates, q if with_quaternion else None, 42, 191, 200
     )
     for i in range(n):
-        rate = (float(rates[i, 0]), float(rates[i, 1]), float(rates[i, 2]))
-        expected = encoder.attitude(int(stamps[i]), euler[i], rate)
+        stamp, rate = int(stamps[i]), [float(r) for r in rates[i]]
+        expected = pymavlinks(mav.attitude_encode(stamp, *map(float, euler[i]), *rate))
         assert first.data[i, : first.length[i]].tobytes() == expected
         if with_quaternion:
             assert second is not None
-            expected = encoder.attitude_quaternion(int(stamps[i]), q[i], rate)
+            expected = pymavlinks(mav.attitude_quaternion_encode(stamp, *map(float, q[i]), *rate))
             assert second.data[i, : second.length[i]].tobytes() == expected
         else:
             assert second is None

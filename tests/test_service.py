@@ -205,6 +205,19 @@ def mavproxy() -> Path:
     return script
 
 
+def _wait_until_still(path: Path, quiet: float = 1.0, timeout: float = 10.0) -> None:
+    """Wait until ``path`` has not grown for ``quiet`` seconds (at most ``timeout``)."""
+    deadline = time.monotonic() + timeout
+    size, since = -1, time.monotonic()
+    while time.monotonic() < deadline:
+        now_size = path.stat().st_size
+        if now_size != size:
+            size, since = now_size, time.monotonic()
+        elif time.monotonic() - since >= quiet:
+            return
+        time.sleep(0.05)
+
+
 def _udp_port_taken(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         try:
@@ -248,6 +261,8 @@ def test_mavproxy_logs_mavests_attitude(mavproxy: Path, tmp_path: Path) -> None:
             stream_flight(f"udpout:127.0.0.1:{service_port}", 100.0, seed=4, seconds=5.0)
         )
         assert service.stop()[0] == 0
+        # MAVProxy logs from a queue of its own: stopped at once, it can lose the last answers
+        _wait_until_still(proxy_log)
     finally:
         proxy.send_signal(signal.SIGINT)
         proxy.communicate(timeout=30)  # MAVProxy exits 1 even when it stops cleanly

@@ -18,10 +18,13 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavest.estimator.config import STANDARD_GRAVITY
+from mavest.mavlink import wire
 from mavest.mavlink.signing import Signing, advance_clock, enable_outgoing
 
 MAVLink = mavlink2.MAVLink
 MAVLinkMessage = mavlink2.MAVLink_message
+_ATTITUDE = mavlink2.MAVLink_attitude_message
+_ATTITUDE_QUATERNION = mavlink2.MAVLink_attitude_quaternion_message
 
 # Factor from a MAVLink unit string to SI (µT for the magnetic field).
 UNIT_TO_SI: dict[str, float] = {
@@ -209,21 +212,36 @@ class Encoder:
         mav.seq = (mav.seq + 1) % 256
         return packet
 
-    def attitude(self, time_boot_ms: int, euler: Any, rates: tuple[float, float, float]) -> bytes:
-        return self._pack(
-            self._mav.attitude_encode(
-                time_boot_ms, float(euler[0]), float(euler[1]), float(euler[2]), *rates
-            )
+    def _pack_unsigned(self, message_class: type[Any], *wire_values: float) -> bytes:
+        """The packet of ``message_class`` with ``wire_values`` (in wire order), as
+        :meth:`_pack` would make it unsigned, without a message object (the hot path)."""
+        mav = self._mav
+        packet = wire.pack(
+            message_class.id,
+            message_class.crc_extra,
+            message_class.unpacker.pack(*wire_values),
+            mav.seq,
+            self.system,
+            self.component,
         )
+        mav.seq = (mav.seq + 1) % 256
+        return packet
+
+    def attitude(self, time_boot_ms: int, euler: Any, rates: tuple[float, float, float]) -> bytes:
+        roll, pitch, yaw = float(euler[0]), float(euler[1]), float(euler[2])
+        if not self.signed:
+            return self._pack_unsigned(_ATTITUDE, time_boot_ms, roll, pitch, yaw, *rates)
+        return self._pack(self._mav.attitude_encode(time_boot_ms, roll, pitch, yaw, *rates))
 
     def attitude_quaternion(
         self, time_boot_ms: int, q: Any, rates: tuple[float, float, float]
     ) -> bytes:
-        return self._pack(
-            self._mav.attitude_quaternion_encode(
-                time_boot_ms, float(q[0]), float(q[1]), float(q[2]), float(q[3]), *rates
+        w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+        if not self.signed:  # repr_offset_q (an extension) zero: dropped as trailing zeros
+            return self._pack_unsigned(
+                _ATTITUDE_QUATERNION, time_boot_ms, w, x, y, z, *rates, 0.0, 0.0, 0.0, 0.0
             )
-        )
+        return self._pack(self._mav.attitude_quaternion_encode(time_boot_ms, w, x, y, z, *rates))
 
     def heartbeat(self) -> bytes:
         return self._pack(

@@ -24,6 +24,7 @@ from typing import Any, Protocol
 from mavest.estimator import Estimator
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.online import EulerComparison
+from mavest.mavlink import wire
 from mavest.mavlink.clock import ClockEvent, StreamClock
 from mavest.mavlink.links import Link, UdpLink
 from mavest.mavlink.messages import (
@@ -188,33 +189,22 @@ class Pipeline:
     def on_bytes(self, link: Link, data: bytes, peer: Any) -> None:
         """Bytes from a link: parse (one parser per peer) and handle each message.
 
-        With signing, the parsers check signatures (pymavlink, with the key); a packet
-        they drop comes out as BAD_DATA and is counted by the verifier, not as damage.
+        A UDP datagram of clean packets is decoded whole (:func:`wire.decode_datagram`:
+        the same messages, a third of the CPU); anything else goes through pymavlink's
+        parser. With signing, the parsers check signatures (pymavlink, with the key); a
+        packet they drop comes out as BAD_DATA and is counted by the verifier, not as
+        damage.
         """
-        key = (id(link), peer)
-        verifier = self.verifier
-        parser = self._parsers.get(key)
-        if parser is None:
-            if verifier is not None:
-                parser = verifier.parser()
-            else:
-                parser = MAVLink(None)
-                parser.robust_parsing = True
-            self._parsers[key] = parser
         now = self.now_us()
-        dropped_before = verifier.dropped if verifier is not None else 0
-        try:
-            messages = parser.parse_buffer(data) or ()
-        except Exception:  # pymavlink raises on some malformed input even when robust
-            self.bad_packets += 1
-            return
-        if parser.buf_len() and isinstance(link, UdpLink):
-            # A packet never spans datagrams: what is left is the start of one cut off
-            # (or noise). Kept, it would swallow the packets of the next datagram.
-            _discard_partial_packet(parser)
-            self.bad_packets += 1
-        # packets the verifier refused, among the BAD_DATA below
-        refused = verifier.dropped - dropped_before if verifier is not None else 0
+        messages = None
+        if self.verifier is None and isinstance(link, UdpLink):
+            messages = wire.decode_datagram(data)
+        refused = 0  # packets the verifier refused, among the BAD_DATA below
+        if messages is None:
+            parsed = self._parse(link, data, peer)
+            if parsed is None:
+                return
+            messages, refused = parsed
         for message in messages:
             if message._type == "BAD_DATA":
                 if refused:
@@ -225,6 +215,33 @@ class Pipeline:
             if self.out_tlog is not None:
                 self.out_tlog.write(now, message.get_msgbuf())
             self.on_message(message, now)
+
+    def _parse(self, link: Link, data: bytes, peer: Any) -> tuple[list[Any], int] | None:
+        """pymavlink's messages of ``data`` and how many of them the verifier refused;
+        None if the parser gave up on the bytes (counted as damage)."""
+        key = (id(link), peer)
+        verifier = self.verifier
+        parser = self._parsers.get(key)
+        if parser is None:
+            if verifier is not None:
+                parser = verifier.parser()
+            else:
+                parser = MAVLink(None)
+                parser.robust_parsing = True
+            self._parsers[key] = parser
+        dropped_before = verifier.dropped if verifier is not None else 0
+        try:
+            messages = parser.parse_buffer(data) or []
+        except Exception:  # pymavlink raises on some malformed input even when robust
+            self.bad_packets += 1
+            return None
+        if parser.buf_len() and isinstance(link, UdpLink):
+            # A packet never spans datagrams: what is left is the start of one cut off
+            # (or noise). Kept, it would swallow the packets of the next datagram.
+            _discard_partial_packet(parser)
+            self.bad_packets += 1
+        refused = verifier.dropped - dropped_before if verifier is not None else 0
+        return messages, refused
 
     def on_message(self, message: Any, timestamp_us: int) -> None:
         """One decoded message; ``timestamp_us`` is its record time (for files written)."""
@@ -533,9 +550,11 @@ class Pipeline:
         rates = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
         encoder = self._encoder(stream.key.system)
         stamp = time_boot_ms(t)
-        self.emit(encoder.attitude(stamp, euler, rates))
+        attitude = encoder.attitude(stamp, euler, rates)
         if output.attitude_quaternion:
-            self.emit(encoder.attitude_quaternion(stamp, estimate.q, rates))
+            self.emit(attitude, encoder.attitude_quaternion(stamp, estimate.q, rates))
+        else:
+            self.emit(attitude)
         stream.stats.answered += 1
 
     def _on_reference(
@@ -569,13 +588,17 @@ class Pipeline:
             )
         return encoder
 
-    def emit(self, packet: bytes) -> None:
-        """Send a packet of ours on every link and record it."""
-        self.sent += 1
+    def emit(self, *packets: bytes) -> None:
+        """Send packets of ours on every link, together (one datagram on UDP, which
+        MAVLink receivers take as they take a byte stream: a send is the costliest
+        step of an answer), and record each."""
+        self.sent += len(packets)
+        data = packets[0] if len(packets) == 1 else b"".join(packets)
         for link in self.links:
-            link.send(packet)
+            link.send(data)
         if self.out_tlog is not None:
-            self.out_tlog.write(self._record_us, packet)
+            for packet in packets:
+                self.out_tlog.write(self._record_us, packet)
 
     def heartbeat(self) -> None:
         """One HEARTBEAT per system mavest speaks as (none until a vehicle is heard)."""
