@@ -227,3 +227,79 @@ def test_the_service_reports_a_reset_in_its_log_summary_and_recording(
     ]
     event_time = batch.column("vehicle_time").cast(pa.int64()).to_numpy()[0] / 1e9
     assert event_time == pytest.approx(broken_at + 1.0 / 200.0, abs=1e-6)
+
+
+# ------------------------------------------------------------------ a clipped gyro
+
+
+def _tumble(clip_reading: float, rate: float = 100.0) -> tuple[np.ndarray, ...]:
+    """Rest level, a roll of 400° in 0.1 s that the gyro reads clipped at
+    ``clip_reading`` (rad/s), rest at the new attitude (40° roll). Returns t, gyro,
+    accel and the true roll per sample."""
+    rng = np.random.default_rng(4)
+    t = np.arange(1, round(12.0 * rate) + 1) / rate
+    true_rate = math.radians(4000.0)
+    spinning = (t > 5.0) & (t <= 5.1 + 1e-9)
+    roll = np.cumsum(np.where(spinning, true_rate / rate, 0.0))
+    gyro = rng.normal(0.0, 0.002, (t.size, 3))
+    gyro[spinning, 0] = min(true_rate, clip_reading)
+    # a rotation about the sensor's own x axis: the accelerometer feels gravity alone
+    gravity_body = Rotation.from_euler("x", roll[:, None]).inv().apply([0.0, 0.0, -G])
+    accel = gravity_body + rng.normal(0.0, 0.05, (t.size, 3))
+    return t, gyro, accel, roll
+
+
+def _tilt_error_deg(q: np.ndarray, roll: np.ndarray) -> np.ndarray:
+    truth = Rotation.from_euler("x", roll[:, None])
+    estimated = Rotation.from_quat(np.roll(q, -1, axis=-1))
+    vertical = np.array([0.0, 0.0, 1.0])
+    # the body's vertical as each sees it, compared in the world
+    a, b = truth.inv().apply(vertical), estimated.inv().apply(vertical)
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
+
+
+def test_a_clipped_gyro_is_followed_by_tilt_from_the_accelerometer_once_calm() -> None:
+    t, gyro, accel, roll = _tumble(clip_reading=math.radians(2005.0))
+    clipped = Estimator().update_batch(t, gyro, accel)
+    unaware = Estimator(EstimatorConfig(gyro_clip=math.inf)).update_batch(t, gyro, accel)
+    flags = clipped.flags
+    assert np.count_nonzero(flags & StepFlags.GYRO_CLIPPED) == 10
+    realigned = np.flatnonzero(flags & StepFlags.CLIP_REALIGNED)
+    assert realigned.size == 1
+    # calm from the end of the roll: re-aligned after _CALM_TIME, not before
+    assert 5.55 <= t[realigned[0]] <= 5.7
+    after = t >= 6.0
+    assert _tilt_error_deg(clipped.q[after], roll[after]).max() < 2.0
+    # without knowing, the 195° the gyro missed stay: rejected as acceleration for seconds
+    later = (t >= 6.0) & (t < 9.0)
+    assert _tilt_error_deg(unaware.q[later], roll[later]).min() > 20.0
+    assert not np.any(flags & RESETS)
+
+
+def test_a_gyro_below_the_clip_limit_changes_nothing() -> None:
+    t, gyro, accel, _ = _tumble(clip_reading=math.radians(1900.0))
+    default = Estimator().update_batch(t, gyro, accel)
+    never = Estimator(EstimatorConfig(gyro_clip=math.inf)).update_batch(t, gyro, accel)
+    assert not np.any(default.flags & (StepFlags.GYRO_CLIPPED | StepFlags.CLIP_REALIGNED))
+    np.testing.assert_array_equal(default.q, never.q)
+
+
+def test_a_sample_dropped_at_its_fields_limit_tells_the_estimator() -> None:
+    from mavest.mavlink.messages import MAVLink, decode_imu, gyro_at_limit
+
+    mav = MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def raw_imu(xgyro: int, zacc: int) -> object:
+        packet = mav.raw_imu_encode(1000, 0, 0, zacc, xgyro, 0, 0, 0, 0, 0, 0, 0).pack(mav)
+        return decode_imu(MAVLink(None).parse_buffer(packet)[0])
+
+    assert gyro_at_limit(raw_imu(32767, -1000))  # type: ignore[arg-type]
+    assert gyro_at_limit(raw_imu(-32768, -1000))  # type: ignore[arg-type]
+    assert not gyro_at_limit(raw_imu(32766, -1000))  # type: ignore[arg-type]
+    assert not gyro_at_limit(raw_imu(0, -32768))  # the accelerometer clipped, not the gyro
+    estimator = _settled()
+    estimator.gyro_clipped()
+    t, gyro, accel = _at_rest(1.0, 200.0, seed=2)
+    series = estimator.update_batch(t + 2.0, gyro, accel)
+    realigned = np.flatnonzero(series.flags & StepFlags.CLIP_REALIGNED)
+    assert realigned.size == 1 and 0.45 <= t[realigned[0]] <= 0.6

@@ -21,6 +21,13 @@ so that what it reports is the service's latency and not the bench's:
   a busy machine sends several samples at once, which the service then queues);
 - "service CPU" is the service's user + system CPU over the stream (from /proc).
 
+Beside the streams, the pipeline's own cost: the same flight's datagrams handed to
+``Pipeline.on_bytes`` in a fresh process per round (per ``--baseline`` version too,
+interleaved), with a UDP link that sends nothing, timed in process CPU per IMU sample.
+No sockets, no event loop, no scheduler: the part of the service's CPU that is its
+own code (decoding, estimating, answering), which the streams' CPU figure, dominated
+on a virtual machine by the sockets' wake-ups, cannot resolve.
+
 ``--live-rounds`` streams, each with a fresh service; ``--baseline DIR`` runs the
 service from another source tree (e.g. an older checkout) in interleaved rounds, for
 a before/after in the same run. ``--realtime`` puts the service's event loop and the
@@ -53,6 +60,7 @@ import contextlib
 import gc
 import math
 import os
+import pickle
 import select
 import socket
 import struct
@@ -628,6 +636,7 @@ def main() -> int:
         if args.baseline:
             services = {f"{args.baseline}": args.baseline, **services}
         print_live(live_rounds(flight, services, args.live_rounds, args.realtime), args)
+        print_pipeline_cost(pipeline_cost(flight, services, args.live_rounds))
         if args.sweep_rates:
             rates = [float(r) for r in args.sweep_rates.split(",")]
             print_sweep(rate_sweep(rates, args.sweep_seconds, args.realtime), args)
@@ -642,6 +651,71 @@ def main() -> int:
                 counted = rerun_instructions(args.instruction_seconds, Path(workdir), args.jobs)
             print_rerun(cost, counted, args)
     return 0
+
+
+# Run in a fresh process (the source tree under test on its PYTHONPATH): feed the
+# pickled datagrams to a pipeline twice (the first pass loads and warms everything),
+# print the second pass's process CPU per IMU sample in µs.
+_PIPELINE_COST = """
+import pickle, sys, time
+from mavest.mavlink.links import UdpLink, parse_endpoint
+from mavest.service.config import ServiceConfig
+from mavest.service.pipeline import Pipeline
+
+class Silent(UdpLink):
+    def send(self, packet):
+        pass
+
+datagrams, samples = pickle.load(open(sys.argv[1], "rb"))
+link = Silent(parse_endpoint("udpin:127.0.0.1:14550"))  # never opened
+peer = ("127.0.0.1", 14550)
+for attempt in range(2):
+    pipeline = Pipeline(ServiceConfig(), links=[link], now_us=lambda: time.time_ns() // 1000)
+    start = time.process_time()
+    for datagram in datagrams:
+        pipeline.on_bytes(link, datagram, peer)
+    cpu = time.process_time() - start
+print(1e6 * cpu / samples)
+"""
+
+
+def pipeline_cost(
+    flight: PreparedFlight, services: dict[str, str], rounds: int
+) -> dict[str, list[float]]:
+    """µs of CPU per IMU sample of ``Pipeline.on_bytes`` on ``flight``'s datagrams, per
+    service version (label → source tree, "" for this one), ``rounds`` times each (ABBA)."""
+    datagrams = [
+        packet
+        for imu, others in zip(flight.imu, flight.others, strict=True)
+        for packet in ((imu,) if imu else ()) + others
+    ]
+    costs: dict[str, list[float]] = {label: [] for label in services}
+    order = list(services.items())
+    with tempfile.TemporaryDirectory() as workdir:
+        flight_file = Path(workdir) / "datagrams.pickle"
+        flight_file.write_bytes(pickle.dumps((datagrams, flight.samples)))
+        for i in range(rounds):
+            for label, path in order if i % 2 == 0 else order[::-1]:
+                environment = {**os.environ, "PYTHONPATH": path} if path else None
+                done = subprocess.run(
+                    [sys.executable, "-c", _PIPELINE_COST, str(flight_file)],
+                    env=environment,
+                    capture_output=True,
+                    text=True,
+                )
+                if done.returncode != 0:
+                    raise RuntimeError(f"pipeline cost of {label}: {done.stderr.strip()}")
+                costs[label].append(float(done.stdout.split()[-1]))
+    return costs
+
+
+def print_pipeline_cost(costs: dict[str, list[float]]) -> None:
+    print("\nPipeline alone (Pipeline.on_bytes in process, no sockets): CPU per IMU sample")
+    print("| service | rounds (µs) | median |")
+    print("|---|---|---:|")
+    for label, values in costs.items():
+        rounds = ", ".join(f"{v:.0f}" for v in values)
+        print(f"| {label} | {rounds} | {float(np.median(values)):.0f} µs |")
 
 
 def live_rounds(

@@ -177,6 +177,15 @@ class EstimatorConfig:
     # Time: a step longer than this is a gap; the attitude is re-aligned.
     max_dt: float = 2.0  # s
 
+    # A gyro reading this large on any axis is taken as clipped (inf: never): the
+    # sensor's range, a little under it where calibration scales the raw limit;
+    # 97 % of the ±2000 °/s that flight controllers set their gyros to. The
+    # rotation it missed is unknown: the accelerometer is not used until the
+    # vehicle is calm again (‖a‖ near g, rate under 30 °/s, for 0.5 s), and then
+    # sets tilt afresh (the magnetometer heading). Estimator.gyro_clipped() says
+    # the same for a sample the caller knows clipped (an integer field at its limit).
+    gyro_clip: float = math.radians(0.97 * 2000.0)  # rad/s
+
     def __post_init__(self) -> None:
         _require(self.update in UPDATE_KINDS, f"update must be one of {UPDATE_KINDS}")
         _require(self.error in ERROR_SIDES, f"error must be one of {ERROR_SIDES}")
@@ -188,6 +197,7 @@ class EstimatorConfig:
             "error = 'left'",
         )
         _require(self.max_iterations >= 1, "max_iterations must be at least 1")
+        _require(self.gyro_clip > 0.0, f"gyro_clip must be > 0 (inf: never), got {self.gyro_clip}")
         _require(0.0 < self.accel_lowpass_damping <= 1.0, "accel_lowpass_damping must be in (0, 1]")
         for name in (
             "gyro_noise_density",

@@ -356,6 +356,13 @@ class Estimator:
             raise ValueError("declination must be finite (rad)")
         self._coefficients["mag_declination"] = value
 
+    def gyro_clipped(self) -> None:
+        """The gyro clipped (a sample the caller dropped, its field at the limit):
+        the estimate waits for the vehicle to be calm, then re-aligns tilt from the
+        accelerometer (``EstimatorConfig.gyro_clip``, ``StepFlags.CLIP_REALIGNED``)."""
+        if self.initialised:
+            self._state["clip_calm_time"] = 0.0
+
     @property
     def mag_rejections(self) -> int:
         """Magnetometer samples not used: field off the reference, or innovation gated."""

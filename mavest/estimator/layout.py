@@ -65,6 +65,12 @@ class StepFlags:
     # the accelerometer contradicted the attitude again soon after tilt was
     # reopened (divergence_window): re-initialised from this sample
     DIVERGED = 524288
+    # a gyro axis at or beyond gyro_clip: the rotation missed is unknown; the
+    # accelerometer is not used until the vehicle is calm again
+    GYRO_CLIPPED = 1048576
+    # calm again after a clipped gyro: attitude re-aligned from the accelerometer
+    # (heading kept, or set again by the magnetometer)
+    CLIP_REALIGNED = 2097152
 
     SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING
 
@@ -105,6 +111,7 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("initial_bias_var", np.float64),
         ("initial_bias", np.float64, 3),
         ("max_dt", np.float64),
+        ("gyro_clip", np.float64),
         ("accel_lowpass_time", np.float64),
         ("accel_lowpass_damping", np.float64),
         ("lowpass_restart_angle", np.float64),
@@ -148,6 +155,8 @@ STATE_DTYPE = np.dtype(
         ("accel_rejections", np.int64),  # samples not used (norm beyond tolerance)
         ("accel_disturbances", np.int64),  # samples used with inflated noise
         ("t_reopened", np.float64),  # when tilt was last reopened, s
+        # after a clipped gyro: how long the vehicle has been calm (−1: not clipped)
+        ("clip_calm_time", np.float64),
         ("unhealthy_resets", np.int64),  # re-initialisations after a failed health check
         ("divergence_resets", np.int64),  # re-initialisations after a divergence
         # filters feeding the measurements
@@ -262,6 +271,7 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["initial_bias_var"] = config.initial_bias_sigma**2
     c["initial_bias"] = config.initial_bias
     c["max_dt"] = config.max_dt
+    c["gyro_clip"] = config.gyro_clip
     c["accel_lowpass_time"] = config.accel_lowpass_time
     c["accel_lowpass_damping"] = config.accel_lowpass_damping
     c["lowpass_restart_angle"] = config.accel_lowpass_restart_angle
@@ -318,4 +328,5 @@ def new_state(coefficients: np.ndarray) -> np.ndarray:
     s["t_mag_used"] = -np.inf
     s["innovation"] = np.nan
     s["t_reopened"] = -np.inf
+    s["clip_calm_time"] = -1.0
     return s

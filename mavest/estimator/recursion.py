@@ -109,6 +109,8 @@ _ACCEL_DISTURBED = StepFlags.ACCEL_DISTURBED
 _GYRO_INVALID = StepFlags.GYRO_INVALID
 _TIME_NOT_INCREASING = StepFlags.TIME_NOT_INCREASING
 _GAP_REALIGNED = StepFlags.GAP_REALIGNED
+_GYRO_CLIPPED = StepFlags.GYRO_CLIPPED
+_CLIP_REALIGNED = StepFlags.CLIP_REALIGNED
 _TILT_REOPENED = StepFlags.TILT_REOPENED
 _LOWPASS_RESTARTED = StepFlags.LOWPASS_RESTARTED
 _ACCEL_DEFERRED = StepFlags.ACCEL_DEFERRED
@@ -847,6 +849,57 @@ def _reopen_tilt(s: StateRecord, c: CoefficientsRecord) -> None:
 
 
 @kernel
+def _gyro_clipped(c: CoefficientsRecord, gyro: np.ndarray) -> bool:
+    limit = c.gyro_clip
+    return abs(gyro[0]) >= limit or abs(gyro[1]) >= limit or abs(gyro[2]) >= limit
+
+
+# After a clipped gyro the vehicle is calm again once its rate stays under this
+# (rad/s, bias removed) with ‖a‖ near g for _CALM_TIME (s): the accelerometer's
+# direction is then gravity's, to within what a 30 °/s rotation adds.
+_CALM_RATE = math.radians(30.0)
+_CALM_TIME = 0.5
+
+
+@kernel
+def _realign_when_calm(
+    s: StateRecord,
+    c: CoefficientsRecord,
+    t: float,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    dt: float,
+) -> None:
+    """After a clipped gyro: wait for calm, then tilt from the accelerometer.
+
+    The rotation the clipped samples missed is unknown, so what the filter
+    believes of tilt (and its covariance) means nothing; the accelerometer of a
+    tumbling vehicle means little either. Its samples are set aside until the
+    vehicle has been calm for _CALM_TIME; that sample then sets tilt with its
+    initial uncertainty, bias kept, and heading kept (6-D) or set again by the
+    next magnetometer sample (9-D).
+    """
+    s.flags |= _ACCEL_DEFERRED
+    rate2 = 0.0
+    for i in range(3):
+        rate2 += (gyro[i] - s.b[i]) ** 2
+    if rate2 < _CALM_RATE * _CALM_RATE and _accel_usable_for_alignment(c, accel):
+        s.clip_calm_time += dt
+    else:
+        s.clip_calm_time = 0.0
+    if s.clip_calm_time < _CALM_TIME:
+        return
+    heading_from_mag = s.mag_state != 0
+    _align(s, c, accel, True, True)
+    if heading_from_mag:
+        s.mag_state = 0  # the next field sample sets heading
+    s.clip_calm_time = -1.0
+    s.t_accel = t
+    s.accel_used = 1
+    s.flags = (s.flags & ~_ACCEL_DEFERRED) | _CLIP_REALIGNED
+
+
+@kernel
 def _lowpass_step(
     c: CoefficientsRecord, dt: float
 ) -> tuple[float, float, float, float, float, float]:
@@ -1492,6 +1545,9 @@ def _step_sample(
         return
     predict(s, c, gyro, dt)
     s.t = t
+    if _gyro_clipped(c, gyro):
+        s.clip_calm_time = 0.0
+        s.flags |= _GYRO_CLIPPED
     if _vector_is_finite(s.linear_accel) and _heading_variance(s, c) > c.aided_max_heading_var:
         # The known acceleration is known in the world frame: with heading this
         # uncertain, turning it into the body would be a guess, and the linear
@@ -1500,6 +1556,10 @@ def _step_sample(
     if not s.filters_primed and _vector_is_finite(accel):
         _prime_filters(s, c, gyro, accel, dt)
         s.filters_primed = 2  # tells accel_update the low-pass already holds this sample
+    if s.clip_calm_time >= 0.0:
+        _realign_when_calm(s, c, t, gyro, accel, dt)
+        mag_update(s, c, t, mag, dt)
+        return
     if _detect_rest(s, c, gyro, accel, dt):
         _zero_rate_update(s, c, gyro, dt)
     accel_update(s, c, t, accel, dt)

@@ -185,6 +185,16 @@ def decode_imu(message: Any) -> ImuSample | None:
     )
 
 
+def gyro_at_limit(sample: ImuSample) -> bool:
+    """Whether a gyro axis of ``sample`` is at its integer field's limit: it clipped."""
+    fmt = IMU_FORMATS[sample.stream.message]
+    if not sample.saturated or fmt.limits is None:
+        return False
+    low, high = fmt.limits
+    raw = [round(rate / fmt.gyro_scale) for rate in sample.gyro]
+    return min(raw) <= low or max(raw) >= high
+
+
 class Encoder:
     """mavest's outgoing messages, as MAVLink 2 packets from its own system and component.
 

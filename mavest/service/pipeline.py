@@ -34,6 +34,7 @@ from mavest.mavlink.messages import (
     MAVLink,
     StreamKey,
     decode_imu,
+    gyro_at_limit,
     mavlink2,
     time_boot_ms,
 )
@@ -97,6 +98,7 @@ class StreamStats:
     tilt_reopened: int = 0  # the accelerometer disturbed too long: tilt uncertain again
     diverged: int = 0  # contradicted again soon after that: re-initialised
     unhealthy: int = 0  # the state failed its health check: re-initialised
+    clip_realigned: int = 0  # calm again after a clipped gyro: tilt re-aligned
     reboots: int = 0
     wraps: int = 0
     mag_samples: int = 0  # samples that carried a usable magnetometer reading
@@ -400,6 +402,8 @@ class Pipeline:
             or accel == (0.0, 0.0, 0.0)
         ):
             _reject(stream, _rejection_reason(sample))
+            if gyro_at_limit(sample):  # the rotation it missed is unknown
+                stream.estimator.gyro_clipped()
             return
         clock = stream.clock
         reading = clock.read(sample.ticks, sample.tick)
@@ -668,7 +672,12 @@ def _usable_mag(mag: tuple[float, float, float] | None) -> tuple[float, float, f
     return mag
 
 
-_HEALTH_EVENTS = StepFlags.TILT_REOPENED | StepFlags.DIVERGED | StepFlags.UNHEALTHY_RESET
+_HEALTH_EVENTS = (
+    StepFlags.TILT_REOPENED
+    | StepFlags.DIVERGED
+    | StepFlags.UNHEALTHY_RESET
+    | StepFlags.CLIP_REALIGNED
+)
 
 
 def _report_health(stream: Stream, flags: int, t: float) -> None:
@@ -686,6 +695,13 @@ def _report_health(stream: Stream, flags: int, t: float) -> None:
             "%s: t=%.1f s: diverged (the accelerometer contradicts the attitude again within "
             "%g s of reopening tilt): re-initialised from this sample",
             *(stream.key, t, stream.estimator.config.divergence_window),
+        )
+    if flags & StepFlags.CLIP_REALIGNED:
+        stats.clip_realigned += 1
+        log.warning(
+            "%s: t=%.1f s: calm again after the gyro clipped: tilt re-aligned from the "
+            "accelerometer",
+            *(stream.key, t),
         )
     if flags & StepFlags.UNHEALTHY_RESET:
         stats.unhealthy += 1

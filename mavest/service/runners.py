@@ -554,6 +554,7 @@ def format_summary(report: RunReport) -> str:
                 ("tilt reopened (accelerometer disturbed too long)", stats.tilt_reopened),
                 ("re-initialised after a divergence", stats.diverged),
                 ("re-initialised after a failed health check", stats.unhealthy),
+                ("tilt re-aligned after the gyro clipped", stats.clip_realigned),
             )
         )
         lines.append("    filter health: " + (", ".join(health) if health else "no resets"))

@@ -30,7 +30,9 @@ measured by ``tools/service_bench.py``.
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -109,8 +111,9 @@ _EVENTS = (
     (StepFlags.TILT_REOPENED, "INFO", "accelerometer disturbed too long: tilt uncertain again"),
     (StepFlags.DIVERGED, "WARN", "diverged (contradicted again soon after): re-initialised"),
     (StepFlags.UNHEALTHY_RESET, "WARN", "state failed its health check: re-initialised"),
+    (StepFlags.CLIP_REALIGNED, "WARN", "calm again after the gyro clipped: tilt re-aligned"),
 )
-_EVENT_BITS = StepFlags.TILT_REOPENED | StepFlags.DIVERGED | StepFlags.UNHEALTHY_RESET
+_EVENT_BITS = functools.reduce(operator.or_, (bit for bit, _, _ in _EVENTS))
 
 
 class _Slots:
