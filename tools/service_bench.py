@@ -77,6 +77,7 @@ from pathlib import Path
 import numpy as np
 from pymavlink import mavutil
 
+import mavest
 from mavest.mavlink.messages import MAVLink, time_boot_ms
 from mavest.service.process import MAVEST, ServiceProcess, free_port
 from mavest.sim.vehicle import AUTOPILOTS, TLOG_EPOCH_US, flight_records, write_flight_tlog
@@ -332,7 +333,8 @@ def live(
     environment = None
     if service_path:
         environment = {**os.environ, "PYTHONPATH": service_path}
-    service = ServiceProcess(f"udpin:127.0.0.1:{port}", env=environment)
+    # run from the tree itself: `python -m` puts the working directory first on sys.path
+    service = ServiceProcess(f"udpin:127.0.0.1:{port}", env=environment, cwd=service_path or None)
     try:
         with _realtime(service.process.pid) if realtime else contextlib.nullcontext():
             cpu_before = _cpu_of(service.process.pid)
@@ -675,7 +677,8 @@ for attempt in range(2):
     for datagram in datagrams:
         pipeline.on_bytes(link, datagram, peer)
     cpu = time.process_time() - start
-print(1e6 * cpu / samples)
+import mavest
+print(mavest.__file__, 1e6 * cpu / samples)
 """
 
 
@@ -700,12 +703,17 @@ def pipeline_cost(
                 done = subprocess.run(
                     [sys.executable, "-c", _PIPELINE_COST, str(flight_file)],
                     env=environment,
+                    cwd=path or None,  # `-c` puts the working directory first on sys.path
                     capture_output=True,
                     text=True,
                 )
                 if done.returncode != 0:
                     raise RuntimeError(f"pipeline cost of {label}: {done.stderr.strip()}")
-                costs[label].append(float(done.stdout.split()[-1]))
+                where, cost = done.stdout.split()
+                expected = Path(path) if path else Path(mavest.__file__).parent.parent
+                if not Path(where).resolve().is_relative_to(expected.resolve()):
+                    raise RuntimeError(f"{label} ran the mavest in {where}, not {expected}")
+                costs[label].append(float(cost))
     return costs
 
 

@@ -25,13 +25,16 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
 class ServiceProcess:
     """Starts ``mavest run ARGUMENTS`` and returns once it listens; ``log`` collects its
     standard error, :meth:`stop` sends SIGINT as Ctrl-C would. ``env``: its environment
-    (default: this process's), e.g. another PYTHONPATH to run another version of mavest."""
+    (default: this process's), e.g. another PYTHONPATH to run another version of mavest;
+    ``cwd``: its working directory — with ``python -m`` that comes first on sys.path,
+    before PYTHONPATH, so another version needs to run from its own tree."""
 
     def __init__(
         self,
         *arguments: str,
         start_timeout: float = 180.0,
         env: Mapping[str, str] | None = None,
+        cwd: str | None = None,
     ) -> None:
         self.process = subprocess.Popen(
             [*MAVEST, "run", *arguments],
@@ -39,6 +42,7 @@ class ServiceProcess:
             stderr=subprocess.PIPE,
             text=True,
             env=env,
+            cwd=cwd,
         )
         self.log: list[str] = []
         self._ready = threading.Event()
