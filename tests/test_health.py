@@ -276,6 +276,25 @@ def test_a_clipped_gyro_is_followed_by_tilt_from_the_accelerometer_once_calm() -
     assert not np.any(flags & RESETS)
 
 
+def test_after_a_clipped_gyro_the_magnetometer_sets_heading_again() -> None:
+    t, gyro, accel, roll = _tumble(clip_reading=math.radians(2005.0))
+    field_world = np.array([20.0, 0.0, 45.0])  # µT, north-east-down: magnetic north
+    mag = Rotation.from_euler("x", roll[:, None]).inv().apply(field_world)
+    series = Estimator().update_batch(t, gyro, accel, mag)
+    realigned = np.flatnonzero(series.flags & StepFlags.CLIP_REALIGNED)
+    aligned = np.flatnonzero(series.flags & StepFlags.HEADING_ALIGNED)
+    assert realigned.size == 1
+    # the first field sample after the re-alignment sets heading afresh
+    assert aligned.size == 2 and aligned[1] == realigned[0] + 1
+    # and nothing in between corrected anything: the field is set aside too
+    clipped = np.flatnonzero(series.flags & StepFlags.GYRO_CLIPPED)
+    assert not np.any(series.mag_used[clipped[0] : realigned[0]])
+    after = t >= 6.0
+    assert _tilt_error_deg(series.q[after], roll[after]).max() < 2.0
+    yaw = Rotation.from_quat(np.roll(series.q[after], -1, axis=-1)).as_euler("ZYX")[:, 0]
+    assert np.degrees(np.abs(yaw)).max() < 3.0
+
+
 def test_a_gyro_below_the_clip_limit_changes_nothing() -> None:
     t, gyro, accel, _ = _tumble(clip_reading=math.radians(1900.0))
     default = Estimator().update_batch(t, gyro, accel)

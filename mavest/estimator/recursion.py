@@ -874,10 +874,10 @@ def _realign_when_calm(
 
     The rotation the clipped samples missed is unknown, so what the filter
     believes of tilt (and its covariance) means nothing; the accelerometer of a
-    tumbling vehicle means little either. Its samples are set aside until the
-    vehicle has been calm for _CALM_TIME; that sample then sets tilt with its
-    initial uncertainty, bias kept, and heading kept (6-D) or set again by the
-    next magnetometer sample (9-D).
+    tumbling vehicle means little either. Its samples (and the magnetometer's)
+    are set aside until the vehicle has been calm for _CALM_TIME; that sample
+    then sets tilt with its initial uncertainty, bias kept, and heading kept
+    (6-D) or set again by the next magnetometer sample (9-D).
     """
     s.flags |= _ACCEL_DEFERRED
     rate2 = 0.0
@@ -1556,9 +1556,8 @@ def _step_sample(
     if not s.filters_primed and _vector_is_finite(accel):
         _prime_filters(s, c, gyro, accel, dt)
         s.filters_primed = 2  # tells accel_update the low-pass already holds this sample
-    if s.clip_calm_time >= 0.0:
+    if s.clip_calm_time >= 0.0:  # nothing corrects an attitude that is not known
         _realign_when_calm(s, c, t, gyro, accel, dt)
-        mag_update(s, c, t, mag, dt)
         return
     if _detect_rest(s, c, gyro, accel, dt):
         _zero_rate_update(s, c, gyro, dt)

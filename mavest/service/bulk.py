@@ -103,6 +103,7 @@ _REGIME_EVENTS = (
     | StepFlags.TILT_REOPENED
     | StepFlags.UNHEALTHY_RESET
     | StepFlags.DIVERGED
+    | StepFlags.CLIP_REALIGNED
     | StepFlags.SKIPPED
 )
 
