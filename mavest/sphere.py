@@ -69,7 +69,9 @@ def log_into(h: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
     wx = h[1] * z[2] - h[2] * z[1]
     wy = h[2] * z[0] - h[0] * z[2]
     wz = h[0] * z[1] - h[1] * z[0]
-    s = math.sqrt(wx * wx + wy * wy + wz * wz)
+    # hypot, not the root of the squares: near h = −z the cross product can be so
+    # small (1e-162) that its squares are denormal and the direction w/s is lost
+    s = math.hypot(math.hypot(wx, wy), wz)
     c = h[0] * z[0] + h[1] * z[1] + h[2] * z[2]
     if s > 0.0:
         k = math.atan2(s, c) / s

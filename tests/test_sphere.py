@@ -50,6 +50,15 @@ def test_angle_is_an_arc_cosine_not_a_dot_product() -> None:
     assert np.linalg.norm(sphere.log(u, v)) == pytest.approx(np.pi / 3, abs=1e-15)
 
 
+def test_nearly_antipodal_directions_keep_their_axis() -> None:
+    # found by Hypothesis: the cross product's squares are denormal here
+    h = np.array([0.0, 0.0, 1.0])
+    z = np.array([0.0, 6.09295507e-162, -1.0])
+    rho = sphere.log(h, z)
+    np.testing.assert_allclose(so3.exp(rho) @ h, z, atol=1e-12)
+    assert np.linalg.norm(rho) == pytest.approx(np.pi, abs=1e-12)
+
+
 def test_antipodal_directions_give_a_half_turn() -> None:
     h = np.array([0.0, 0.0, 1.0])
     rho = sphere.log(h, -h)
