@@ -102,7 +102,9 @@ def test_acceleration_aiding_is_what_makes_turns_work(flight_1khz: Path) -> None
         (stream,) = asyncio.run(replay(flight_1khz, config)).streams
         tilt[mode] = stream.vs_truth.result().inclination_rms
         aided = stream.stats.gps_aided / stream.stats.estimated
-        assert aided > 0.99 if mode == "auto" else aided == 0.0
+        # auto: aided once heading's σ is under aided_max_heading_sigma (10°), which
+        # the magnetometer's honest covariance takes the first ~2 s to reach (0.95)
+        assert aided > 0.9 if mode == "auto" else aided == 0.0
     # GPS velocity (auto) beats the airspeed's centripetal term, which beats nothing
     assert tilt["auto"] < tilt["airspeed"] < tilt["off"] / 3.0, tilt
 

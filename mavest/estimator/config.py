@@ -137,6 +137,11 @@ class EstimatorConfig:
     # magnetometer mean the same); the correction's time constant is about
     # density/gyro_noise_density.
     mag_heading_noise_density: float = 0.08  # rad·√s
+    # The tilt error leaks into the field's azimuth (× tan dip); it changes only
+    # as fast as gravity corrects tilt, so the heading gain counts it as white
+    # noise of the same low-frequency power: its variance × this time / Δt
+    # (≈ accel_lowpass_time; 0: the variance alone, as if new every sample).
+    mag_tilt_leak_time: float = 3.0  # s
     # heading's σ when the field is trusted again after mag_max_rejection_time
     mag_reopened_heading_sigma: float = math.radians(20.0)  # rad
     # Calibration as ArduPilot names it: m = A (raw + COMPASS_OFS), A the symmetric
@@ -240,6 +245,7 @@ class EstimatorConfig:
             "mag_recovery_time",
             "mag_gate",
             "mag_reference_adapt_time",
+            "mag_tilt_leak_time",
         ):
             value = getattr(self, name)
             _require(math.isfinite(value) and value >= 0.0, f"{name} must be ≥ 0, got {value}")

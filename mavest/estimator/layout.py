@@ -126,6 +126,7 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("rest_min_time", np.float64),
         ("rest_rate_var", np.float64),
         ("mag_heading_var_density", np.float64),  # rad²·s
+        ("mag_tilt_leak_time", np.float64),  # s
         ("mag_reopened_heading_var", np.float64),
         ("mag_offsets", np.float64, 3),  # µT
         ("mag_soft_iron", np.float64, (3, 3)),
@@ -286,6 +287,7 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["rest_min_time"] = config.rest_min_time
     c["rest_rate_var"] = config.rest_rate_sigma**2
     c["mag_heading_var_density"] = config.mag_heading_noise_density**2
+    c["mag_tilt_leak_time"] = config.mag_tilt_leak_time
     c["mag_reopened_heading_var"] = config.mag_reopened_heading_sigma**2
     c["mag_offsets"] = np.asarray(config.compass_ofs) * MICROTESLA_PER_MILLIGAUSS
     c["mag_soft_iron"] = config.soft_iron

@@ -19,21 +19,46 @@ the tilt entries being how a tilt error leaks into the azimuth through the
 field's vertical part (the dip). For the right error (δθ in the body frame,
 δθ_world = R̄ δθ) H = H_world R̄.
 
-Only heading is corrected: the filter's gain rows for the two horizontal
-world axes are zeroed (they are *considered*, Schmidt), so a disturbed field
-can never tilt the estimate. The gain itself comes from the heading term of H
-alone, with the tilt leak H_τ τ counted as independent noise in the
-innovation's variance. The full H's gain (the Schmidt-optimal one) was
-measured first: on BROAD's fast rotations (600 °/s, magnetometer azimuth
-errors of 17° RMS against the truth) the tilt–heading correlation it leans on,
-amplified by tan(dip) ≈ 2.6, pulled heading 20° off, against 1.7° for this
-gain. The price: the leak is a slowly varying error, not white, and treating
-it as white leaves the heading variance optimistic while a large heading
-error converges (tools/consistency.py: ``small_9d`` in band, ``large_heading_9d``
-not); the Joseph form with the full H and this gain is honest but diverges on
-BROAD. This is the magnetometer half of
-VQF's idea (Laidig & Seel 2023: heading corrected in the 6-D earth frame),
-made a Kalman update.
+Only heading is corrected: the gain's rows for the two horizontal world axes
+are zeroed (they are *considered*, Schmidt), so a disturbed field can never
+tilt the estimate, and of the bias only the component about the world
+vertical (the one that turns heading) is moved; the horizontal bias is
+gravity's to correct. The gain comes from the heading term of H alone, with
+the tilt leak H_τ τ counted as noise in the innovation's variance; the leak
+is a slowly varying error (tilt changes as fast as gravity corrects it), so
+it is counted as white noise of the same low-frequency power, its variance ×
+``mag_tilt_leak_time``/Δt (3 s, the accelerometer low-pass's time). The
+covariance is the Joseph form for that gain with the *full* H — C = P Hᵀ,
+S = H P Hᵀ + R — the true covariance of the estimate this gain makes, leak
+and tilt–heading correlation included. In turn, once a magnetometer
+references heading, a gravity update without a known acceleration leaves
+heading alone (its gain loses its component about the vertical, the
+covariance again the Joseph form): the honest tilt–heading correlation would
+otherwise let every tilt correction move heading. Each update moves only
+what it measures and both covariances stay exact for the gains used. (With
+the acceleration known, gravity does see heading in turns and keeps its
+gain; without a magnetometer the 6-D filter is unchanged.)
+
+Measured (tools/consistency.py --quick --runs 20; BROAD 9-D mean total /
+heading, README): the heading-only gain with the leak as white noise per
+sample and the covariance from H_ψ was accurate (2.000° / 1.869°) but
+optimistic while a large heading error converged (``large_heading_9d``
+ANEES 11.0, out of band); the Joseph form with the full H and that gain
+diverged, in simulation as on BROAD (18°): the gain's horizontal-bias rows
+fed the leak into the bias and gravity's gain moved heading along the
+correlation. The full H's gain (Schmidt-optimal) leans on the tilt–heading
+correlation × tan(dip) (2.6 on BROAD): with the honest covariance it is
+far out of band in simulation (ANEES 79 in ``small_9d``) and BROAD 9-D goes
+to 3.07° (its first trial, on BROAD's fast rotations with magnetometer
+azimuth errors of 17° RMS against the truth, pulled heading 20° off).
+Without the leak's inflation the honest covariance is in band but the gain,
+now seeing heading's true variance, follows the leak (BROAD 4.7°); with it
+(and gravity leaving heading alone) BROAD 9-D is 1.90° / 1.75°, both
+scenarios in band (6.1 / 3.3, 6.9 / 3.7), and simulated heading RMSE 3.5° /
+6.8° against the white-leak gain's 2.6° / 4.2°: honesty costs accuracy only
+where the leak the old gain ignored was large. This is
+the magnetometer half of VQF's idea (Laidig & Seel 2023: heading corrected
+in the 6-D earth frame), made a Kalman update.
 """
 
 from __future__ import annotations

@@ -143,6 +143,56 @@ def _set_identity(M: np.ndarray) -> None:
 
 
 @kernel
+def _vertical_in_body(s: StateRecord) -> tuple[float, float, float]:
+    """R̄ᵀ e₃: the world vertical in the body frame (the third row of R̄)."""
+    w, x, y, z = s.q[0], s.q[1], s.q[2], s.q[3]
+    return 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+
+
+@kernel
+def _vertical_in_error_frame(s: StateRecord, c: CoefficientsRecord) -> tuple[float, float, float]:
+    """The world vertical in the attitude error's frame: e₃ (left error), R̄ᵀ e₃ (right)."""
+    if c.error == ERROR_LEFT:
+        return 0.0, 0.0, 1.0
+    return _vertical_in_body(s)
+
+
+@kernel
+def _gravity_leaves_heading(s: StateRecord) -> bool:
+    """Whether the gravity update considers heading (:func:`_drop_heading_gain`).
+
+    With a magnetometer referencing heading, and no known acceleration in
+    the sample. Without a magnetometer (6-D) heading is free, and the gain
+    keeps the Kalman filter's own share: P's tilt–heading correlation is
+    then the prediction's and the reset's alone.
+    """
+    return s.t_mag_used > -math.inf and not _vector_is_finite(s.linear_accel)
+
+
+@kernel
+def _drop_heading_gain(s: StateRecord, c: CoefficientsRecord, K: np.ndarray, m: int) -> None:
+    """K's attitude rows (n×m) lose their component about the world vertical.
+
+    Called for the gravity update when :func:`_gravity_leaves_heading`: it
+    then moves tilt and bias only, heading being *considered* in it
+    (Schmidt), as tilt is in the magnetometer's. Gravity alone says nothing
+    about heading; what it would move there comes only through P's
+    tilt–heading correlation, which the magnetometer's honest covariance
+    (:func:`mag_update`) makes large and which a disturbed or lagging field
+    on fast rotations makes wrong. (With the acceleration known the sample
+    does see heading, in turns — :func:`_couple_aided_sample` — and the gain
+    keeps it.) The covariance stays the Joseph form for the gain used
+    (:func:`_joseph_update`, :func:`gain_update`).
+    """
+    v0, v1, v2 = _vertical_in_error_frame(s, c)
+    for a in range(m):
+        along = v0 * K[0, a] + v1 * K[1, a] + v2 * K[2, a]
+        K[0, a] -= v0 * along
+        K[1, a] -= v1 * along
+        K[2, a] -= v2 * along
+
+
+@kernel
 def _transform_blocks(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -678,6 +728,8 @@ def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: floa
     for i in range(n):
         K[i, 0] = C[i, 0] * i00 + C[i, 1] * i01
         K[i, 1] = C[i, 0] * i01 + C[i, 1] * i11
+    if _gravity_leaves_heading(s):
+        _drop_heading_gain(s, c, K, 2)
     r0, r1 = s.w_r[0], s.w_r[1]
     return r0 * r0 * i00 + 2.0 * r0 * r1 * i01 + r1 * r1 * i11
 
@@ -831,6 +883,9 @@ def _sigma_point_update(s: StateRecord, c: CoefficientsRecord, var: float, gate:
         else:
             K[i, 0] = C[i, 0] * i00 + C[i, 1] * i01
             K[i, 1] = C[i, 0] * i01 + C[i, 1] * i11
+    if _gravity_leaves_heading(s):
+        _drop_heading_gain(s, c, K, 2)
+    for i in range(n):
         s.w_dx[i] = -(K[i, 0] * rbar0 + K[i, 1] * rbar1)
     gain_update(s.P[:n, :n], K[:n], C[:n], S, 2)
     s.iterations = 1
@@ -1283,9 +1338,13 @@ def _track_reference(
 def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray, dt: float) -> None:
     """Heading from the magnetometer (:mod:`mavest.estimator.magnetic`); NaN mag: none.
 
-    The first usable sample sets heading; later ones are scalar Kalman updates
-    of the heading with the tilt rows of the gain zeroed, gated by the field's
-    norm and dip against the reference and by the innovation's χ².
+    The first usable sample sets heading; later ones are scalar updates,
+    gated by the field's norm and dip against the reference and by the
+    innovation's χ², that move heading and the bias about the world vertical
+    only. The gain comes from the heading term H_ψ with the tilt leak counted
+    as noise (inflated for its slowness, ``mag_tilt_leak_time``); the
+    covariance is the Joseph form for that gain with the full H, so it is the
+    true covariance of the estimate the gain makes, leak included.
     """
     if not _vector_is_finite(mag):
         return  # no magnetometer in this sample
@@ -1324,25 +1383,32 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
         disturbed = False
         gate = 0.0
     nu = magnetic.wrap(azimuth - c.mag_declination)
-    # The measurement as the filter uses it: y = −ψ + w, with the tilt error's
-    # leak into the azimuth (H_τ τ, H_τ = tan(dip)·(cos d, sin d)) counted in w
-    # as independent noise — not through P's tilt–heading correlation (see the
-    # module docstring for why).
-    magnetic.heading_jacobian_into(s.q, dip, c.mag_declination, c.error, s.w_R, s.w_v3)
-    magnetic.heading_jacobian_into(s.q, 0.0, c.mag_declination, c.error, s.w_R, s.w_Hm)
+    # The measurement: y = H δx + w, H = (H_τ, −1) in world axes, the tilt
+    # error leaking into the azimuth through the dip (H_τ = tan(dip)·(cos d, sin d)).
+    Hf = s.w_v3  # the full H (error frame)
+    Hp = s.w_Hm  # its heading part H_ψ (the same at zero dip)
+    magnetic.heading_jacobian_into(s.q, dip, c.mag_declination, c.error, s.w_R, Hf)
+    magnetic.heading_jacobian_into(s.q, 0.0, c.mag_declination, c.error, s.w_R, Hp)
     n = c.n_state
     P = s.P
-    H = s.w_Hm
     C = s.w_Cm
     K = s.w_Km
-    S = c.mag_heading_var_density / dt_mag
-    for i in range(3):  # + (H − H_ψ) P (H − H_ψ)ᵀ: the tilt leak, as independent noise
+    var_mag = c.mag_heading_var_density / dt_mag
+    # The gain's innovation variance: heading's, the field's noise, and the
+    # leak (H − H_ψ) P (H − H_ψ)ᵀ counted as noise — not through P's
+    # tilt–heading correlation (see the module docstring for why) — and,
+    # being a slowly varying error (tilt corrects over ~mag_tilt_leak_time),
+    # as white noise of the same low-frequency power: a sample counts the
+    # leak's variance × mag_tilt_leak_time/Δt.
+    leak = 0.0
+    for i in range(3):
         for j in range(3):
-            S += (s.w_v3[i] - H[i]) * P[i, j] * (s.w_v3[j] - H[j])
+            leak += (Hf[i] - Hp[i]) * P[i, j] * (Hf[j] - Hp[j])
+    S = var_mag + leak * max(1.0, c.mag_tilt_leak_time / dt_mag)
     for i in range(n):
-        C[i, 0] = P[i, 0] * H[0] + P[i, 1] * H[1] + P[i, 2] * H[2]
+        C[i, 0] = P[i, 0] * Hp[0] + P[i, 1] * Hp[1] + P[i, 2] * Hp[2]
         if i < 3:
-            S += H[i] * C[i, 0]
+            S += Hp[i] * C[i, 0]
     nis = nu * nu / S
     s.heading_innovation = nu
     s.heading_nis = nis
@@ -1354,19 +1420,27 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
         s.flags |= _MAG_REJECTED
         s.mag_disturbances += 1
         return
-    # K = C / S with the tilt rows zeroed in the world frame (considered), and
-    # the considered low-pass states' rows zeroed as in every update
-    _error_frame_from_world(s, c)  # M: world → error frame; K_world = Mᵀ K_θ
-    M = s.w_m33
-    vertical = M[0, 2] * C[0, 0] + M[1, 2] * C[1, 0] + M[2, 2] * C[2, 0]
+    # K = C / S moving heading and the bias about the world vertical only:
+    # tilt and the horizontal bias are considered (a disturbed field must
+    # never tilt the estimate, nor teach the bias what gravity corrects), as
+    # are the low-pass states, as in every update
+    v0, v1, v2 = _vertical_in_error_frame(s, c)
+    along = (v0 * C[0, 0] + v1 * C[1, 0] + v2 * C[2, 0]) / S
+    K[0, 0], K[1, 0], K[2, 0] = v0 * along, v1 * along, v2 * along
+    v0, v1, v2 = _vertical_in_body(s)  # the bias is a body-frame vector
+    along = (v0 * C[3, 0] + v1 * C[4, 0] + v2 * C[5, 0]) / S
+    K[3, 0], K[4, 0], K[5, 0] = v0 * along, v1 * along, v2 * along
+    for i in range(_EPS, n):
+        K[i, 0] = 0.0
+    # The covariance for this gain and the real measurement: the Joseph form
+    # with the full H, C = P Hᵀ, S = H P Hᵀ + R, so that what the leak and
+    # the tilt–heading correlation do to the estimate is in P
+    S_full = var_mag
     for i in range(n):
+        C[i, 0] = P[i, 0] * Hf[0] + P[i, 1] * Hf[1] + P[i, 2] * Hf[2]
         if i < 3:
-            K[i, 0] = M[i, 2] * vertical / S
-        elif i < _EPS:
-            K[i, 0] = C[i, 0] / S
-        else:
-            K[i, 0] = 0.0
-    s.w_Sm[0, 0] = S
+            S_full += Hf[i] * C[i, 0]
+    s.w_Sm[0, 0] = S_full
     gain_update(P[:n, :n], K[:n], C[:n], s.w_Sm, 1)
     for i in range(n):
         s.w_dx[i] = K[i, 0] * nu
