@@ -60,6 +60,10 @@ def tangent_basis(v: np.ndarray) -> np.ndarray:
     return out
 
 
+# Below this a norm's squares lose precision to denormals (2⁻⁵¹¹ ≈ 1.5e-154).
+_TINY_NORM = 1e-150
+
+
 @kernel
 def log_into(h: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
     """ρ with Exp(ρ) h = z along the shortest arc, ‖ρ‖ = θ ∈ [0, π], ρ ⊥ h, z.
@@ -69,9 +73,11 @@ def log_into(h: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
     wx = h[1] * z[2] - h[2] * z[1]
     wy = h[2] * z[0] - h[0] * z[2]
     wz = h[0] * z[1] - h[1] * z[0]
-    # hypot, not the root of the squares: near h = −z the cross product can be so
-    # small (1e-162) that its squares are denormal and the direction w/s is lost
-    s = math.hypot(math.hypot(wx, wy), wz)
+    s = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if s < _TINY_NORM:
+        # near h = −z the cross product can be so small (1e-162) that its squares
+        # are denormal and the direction w/s is lost: hypot scales them first
+        s = math.hypot(math.hypot(wx, wy), wz)
     c = h[0] * z[0] + h[1] * z[1] + h[2] * z[2]
     if s > 0.0:
         k = math.atan2(s, c) / s
