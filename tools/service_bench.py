@@ -330,11 +330,8 @@ def live(
     """
     flight = flight if flight is not None else prepare_flight(seconds, rate)
     port = free_port(socket.SOCK_DGRAM)
-    environment = None
-    if service_path:
-        environment = {**os.environ, "PYTHONPATH": service_path}
-    # run from the tree itself: `python -m` puts the working directory first on sys.path
-    service = ServiceProcess(f"udpin:127.0.0.1:{port}", env=environment, cwd=service_path or None)
+    environment, directory = _tree(service_path)
+    service = ServiceProcess(f"udpin:127.0.0.1:{port}", env=environment, cwd=directory)
     try:
         with _realtime(service.process.pid) if realtime else contextlib.nullcontext():
             cpu_before = _cpu_of(service.process.pid)
@@ -693,28 +690,43 @@ def pipeline_cost(
         for packet in ((imu,) if imu else ()) + others
     ]
     costs: dict[str, list[float]] = {label: [] for label in services}
-    order = list(services.items())
     with tempfile.TemporaryDirectory() as workdir:
         flight_file = Path(workdir) / "datagrams.pickle"
         flight_file.write_bytes(pickle.dumps((datagrams, flight.samples)))
-        for i in range(rounds):
-            for label, path in order if i % 2 == 0 else order[::-1]:
-                environment = {**os.environ, "PYTHONPATH": path} if path else None
-                done = subprocess.run(
-                    [sys.executable, "-c", _PIPELINE_COST, str(flight_file)],
-                    env=environment,
-                    cwd=path or None,  # `-c` puts the working directory first on sys.path
-                    capture_output=True,
-                    text=True,
-                )
-                if done.returncode != 0:
-                    raise RuntimeError(f"pipeline cost of {label}: {done.stderr.strip()}")
-                where, cost = done.stdout.split()
-                expected = Path(path) if path else Path(mavest.__file__).parent.parent
-                if not Path(where).resolve().is_relative_to(expected.resolve()):
-                    raise RuntimeError(f"{label} ran the mavest in {where}, not {expected}")
-                costs[label].append(float(cost))
+        for label, path in _abba(services, rounds):
+            environment, directory = _tree(path)
+            done = subprocess.run(
+                [sys.executable, "-c", _PIPELINE_COST, str(flight_file)],
+                env=environment,
+                cwd=directory,
+                capture_output=True,
+                text=True,
+            )
+            if done.returncode != 0:
+                raise RuntimeError(f"pipeline cost of {label}: {done.stderr.strip()}")
+            where, cost = done.stdout.split()
+            expected = Path(path) if path else Path(mavest.__file__).parent.parent
+            if not Path(where).resolve().is_relative_to(expected.resolve()):
+                raise RuntimeError(f"{label} ran the mavest in {where}, not {expected}")
+            costs[label].append(float(cost))
     return costs
+
+
+def _tree(path: str) -> tuple[dict[str, str] | None, str | None]:
+    """The environment and working directory that run the mavest of source tree ``path``
+    ("" for this one): its PYTHONPATH, and the tree itself as the working directory,
+    which ``python -m`` and ``python -c`` put on sys.path before PYTHONPATH."""
+    if not path:
+        return None, None
+    return {**os.environ, "PYTHONPATH": path}, path
+
+
+def _abba(services: dict[str, str], rounds: int) -> Iterator[tuple[str, str]]:
+    """(label, source tree) of each run: ``rounds`` rounds, the versions in turn first
+    from one round to the next (ABBA), so that a drifting machine load favours none."""
+    order = list(services.items())
+    for i in range(rounds):
+        yield from order if i % 2 == 0 else order[::-1]
 
 
 def print_pipeline_cost(costs: dict[str, list[float]]) -> None:
@@ -732,10 +744,8 @@ def live_rounds(
     """``flight`` sent to each service version (label → source tree, "" for this one)
     ``rounds`` times, the versions in turn first from one round to the next (ABBA)."""
     runs: dict[str, list[LiveRun]] = {label: [] for label in services}
-    order = list(services.items())
-    for i in range(rounds):
-        for label, path in order if i % 2 == 0 else order[::-1]:
-            runs[label].append(live(0.0, flight.rate, flight, path, realtime))
+    for label, path in _abba(services, rounds):
+        runs[label].append(live(0.0, flight.rate, flight, path, realtime))
     return runs
 
 
