@@ -21,7 +21,7 @@ from mavest import so3
 from mavest._jit import kernel, without_dispatch
 from mavest.estimator.config import EstimatorConfig
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
-from mavest.estimator.recursion import step
+from mavest.estimator.recursion import step, turn_heading
 
 
 @kernel
@@ -69,6 +69,11 @@ def _step_scalars(
         s.heading_nis,
         s.mag_used != 0,
     )
+
+
+@kernel
+def _turn_heading(state: np.ndarray, coefficients: np.ndarray, psi: float) -> None:
+    turn_heading(state[0], coefficients[0], psi)
 
 
 def _compiled_step(state: np.ndarray, coefficients: np.ndarray) -> Callable[..., tuple]:
@@ -350,11 +355,17 @@ class Estimator:
     def declination(self, value: float) -> None:
         """Change the declination (e.g. to the vehicle's own COMPASS_DEC) while running.
 
-        Heading follows through the magnetometer updates, as fast as they correct it.
+        A heading the magnetometer has already referenced turns with it at once,
+        its uncertainty kept: it was the field's azimuth plus the old
+        declination. (Left to the magnetometer updates, a 12° change takes
+        minutes at a converged heading's σ, or trips the innovation gate.)
         """
         if not math.isfinite(value):
             raise ValueError("declination must be finite (rad)")
+        turn = math.remainder(value - self.declination, math.tau)
         self._coefficients["mag_declination"] = value
+        if self.initialised and self._state["t_mag_used"][0] > -math.inf and turn != 0.0:
+            _turn_heading(self._state, self._coefficients, turn)
 
     def gyro_clipped(self) -> None:
         """The gyro clipped (a sample the caller dropped, its field at the limit):

@@ -1255,6 +1255,19 @@ def _align_heading(s: StateRecord, c: CoefficientsRecord, azimuth: float, var: f
 
 
 @kernel
+def turn_heading(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
+    """Turn the estimate by ψ about the world vertical, keeping its uncertainty.
+
+    For a heading the magnetometer has referenced when the declination it was
+    referenced to changes by ψ (the vehicle's COMPASS_DEC arriving after the
+    first field sample): the estimate's error then has mean ψ about the
+    vertical and the same spread, so this is a correction by ψ and its reset.
+    """
+    _heading_step(s, c, psi)
+    _apply_correction(s, c, s.w_dx)
+
+
+@kernel
 def _start_reference(
     s: StateRecord, c: CoefficientsRecord, norm: float, dip: float, learned: float
 ) -> None:
