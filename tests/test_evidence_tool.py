@@ -126,11 +126,16 @@ def test_broad_and_logs_table_and_plots(tmp_path: Path, capsys: pytest.CaptureFi
         "BROAD 9-D total, mean of 2",
         "BROAD 9-D heading, mean of 2",
     ]
-    # log171: rest, flight, crash against ATT and AHR2; pyulog_sample: by hand, rest;
-    # the simulator: whole, against vehicle_attitude and its ground truth.
-    assert len(labels) == 3 + 6 + 2 + 2
+    # log171: rest, flight, crash against ATT and AHR2, rest and upside down against the
+    # resting accelerometer; pyulog_sample: by hand, rest, and rest against the
+    # accelerometer; the simulator: whole, against vehicle_attitude and its ground truth.
+    assert len(labels) == 3 + 6 + 2 + 2 + 1 + 2
     assert labels[3] == "ArduCopter log171 vs ATT: rest 0–60 s"
     assert labels[-1] == "PX4 simulator vs ground truth: all 0–11 s"
+    upside_down = "ArduCopter log171 vs accelerometer at rest: upside down 229–243 s"
+    # measured: mavest 0.53°, the autopilot's ATT 8.90°, VQF 11.82°
+    assert values[upside_down]["mavest"] < 1.0  # type: ignore[operator]
+    assert values[upside_down]["autopilot"] > 5.0  # type: ignore[operator]
     for label, row in values.items():
         filled = [v for c, v in row.items() if c in SAME_IMU_QUICK]
         assert all(v is not None and 0.0 < v < 90.0 for v in filled), label
@@ -139,9 +144,14 @@ def test_broad_and_logs_table_and_plots(tmp_path: Path, capsys: pytest.CaptureFi
     assert 0.3 < broad_6d["mavest"] < 1.2 * broad_6d["VQF"]  # type: ignore[operator]
     assert values["BROAD 9-D total, mean of 2"]["mavest"] < 2.5  # type: ignore[operator]
     assert values[labels[3]]["mavest"] < 0.8  # type: ignore[operator]  # measured 0.64
-    # Only the simulator against its truth has the autopilot's own error (measured 0.22°).
+    # The autopilot's own error only against references it did not write: the
+    # simulator's truth (measured 0.22°) and the resting accelerometer.
     autopilot = [label for label, row in values.items() if row["autopilot"] is not None]
-    assert autopilot == [labels[-1]] and 0.0 < values[labels[-1]]["autopilot"] < 0.4  # type: ignore[operator]
+    assert autopilot == [
+        *[label for label in labels if "accelerometer at rest" in label],
+        labels[-1],
+    ]
+    assert 0.0 < values[labels[-1]]["autopilot"] < 0.4  # type: ignore[operator]
     assert_bold_is_the_lowest(values, bold)
     # The detail: per trial, per segment (EKF1 there too), the loaders' notes.
     for text in ("| 07_undisturbed_fast_rotation_B |", "vs EKF1: flight", "AHRS_TRIM_X"):

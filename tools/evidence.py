@@ -13,8 +13,11 @@ variants), VQF, x-io Fusion and the ``ahrs`` package's Madgwick and Mahony, on
 * the autopilot logs ($MAVEST_DATA/dataflash, ulog): 6-D from the logged IMU, slerped
   onto the autopilot's own attitude (ArduPilot ATT and AHR2 with the AHRS trim added
   back, EKF1 in --detail: it equals ATT from 10 s on; PX4 vehicle_attitude) and, for
-  the PX4 simulator log, onto its true attitude, where the autopilot is a column too;
-  inclination RMSE per segment;
+  the PX4 simulator log, onto its true attitude; and onto a reference no estimator
+  wrote, the accelerometer's gravity direction in the still seconds of stretches the
+  vehicle lies in (log171 before take-off and upside down after its crash, the PX4
+  log at rest). Against the truth and the accelerometer the autopilot is a column
+  too; inclination RMSE per segment;
 * JSBSim flights as ``make demo`` makes them (Cessna 172, ArduPilot RAW_IMU at 400 Hz
   with noise, bias and quantisation; one per seed): every filter fed the same IMU
   samples read back from the tlog (6-D), tilt RMSE against the flight model's truth
@@ -57,7 +60,7 @@ from mavest.datasets.autopilot_logs import (
 )
 from mavest.datasets.broad import BroadTrial, list_trials, load_trial
 from mavest.evaluation.accuracy import MAVEST_VARIANTS, mavest_adapter
-from mavest.evaluation.logs import Score, Segment, score_segments, slerp_onto
+from mavest.evaluation.logs import Score, Segment, gravity_at_rest, score_segments, slerp_onto
 from mavest.evaluation.metrics import attitude_errors, rmse_deg
 from mavest.evaluation.peers import PEERS, PeerAdapter
 from mavest.so3 import euler_zyx_from_quats, quats_from_euler_zyx
@@ -96,6 +99,29 @@ LOGS: dict[str, tuple[str, list[Segment], tuple[str, ...]]] = {
     ),
     ULOG_SIMULATOR: ("PX4 simulator", [], ()),
 }
+
+#: A reference no estimator wrote (:func:`~mavest.evaluation.logs.gravity_at_rest`):
+#: the accelerometer's gravity direction in 1 s windows where the vehicle lies still,
+#: within stretches it is known to lie in. Every filter and the autopilot's own
+#: attitude are scored against it.
+RESTING = "accelerometer at rest"
+#: A rate above this is violent motion: log171 lies still only after its last one.
+VIOLENT_RATE = np.radians(100.0)
+
+
+def still_spans(relative: str, log: AutopilotLog) -> list[Segment]:
+    """The stretches of this log whose vehicle is known to lie still (none: no reference).
+
+    log171: before take-off (the data README), and upside down after the flip, from
+    its last rate above VIOLENT_RATE; pyulog_sample: resting after the first 10 s.
+    """
+    if relative == DATAFLASH_LOG171:
+        violent = np.flatnonzero(np.linalg.norm(log.gyro, axis=1) > VIOLENT_RATE)
+        after = float(log.t[violent[-1]]) if violent.size else log.duration
+        return [Segment("rest", 0.0, 60.0), Segment("upside down", after, np.inf)]
+    if relative == ULOG_REAL:
+        return [Segment("rest", 10.0, np.inf)]
+    return []
 
 
 class MissingInputError(Exception):
@@ -266,15 +292,24 @@ def run_logs(logs: list[tuple[str, AutopilotLog]], filters: Filters) -> LogsResu
         if relative == DATAFLASH_LOG171:
             result.log171 = log
             result.log171_estimates = {name: estimates[name] for name in PLOTTED}
-        comparisons = [(source, t, q, shown, candidates) for source, t, q, shown in references]
+        everywhere = [*segments, ALL]
+        comparisons = [
+            (source, t, q, shown, candidates, everywhere) for source, t, q, shown in references
+        ]
+        # Against a reference no estimator wrote the autopilot is one more estimate,
+        # interpolated like ours.
+        with_autopilot = candidates | {AUTOPILOT: (log.reference_t, log.reference_q)}
         if log.truth_t is not None and log.truth_q is not None:
-            # Against the truth the autopilot is one more estimate, interpolated like ours.
-            with_autopilot = candidates | {AUTOPILOT: (log.reference_t, log.reference_q)}
-            comparisons.append(("ground truth", log.truth_t, log.truth_q, True, with_autopilot))
-        shown_segments = segments or [ALL]
-        for source, ref_t, ref_q, shown, compared in comparisons:
-            by_segment = score_segments(compared, ref_t, ref_q, [*segments, ALL])
-            for segment in [*segments, ALL]:
+            comparisons.append(
+                ("ground truth", log.truth_t, log.truth_q, True, with_autopilot, everywhere)
+            )
+        if spans := still_spans(relative, log):
+            still_t, still_q = gravity_at_rest(log.t, log.gyro, log.accel, spans)
+            comparisons.append((RESTING, still_t, still_q, True, with_autopilot, spans))
+        shown_segments = [*segments, *spans] or [ALL]
+        for source, ref_t, ref_q, shown, compared, scored in comparisons:
+            by_segment = score_segments(compared, ref_t, ref_q, scored)
+            for segment in scored:
                 result.scores.append(
                     LogScores(
                         label,
@@ -284,7 +319,13 @@ def run_logs(logs: list[tuple[str, AutopilotLog]], filters: Filters) -> LogsResu
                         by_segment[segment.label],
                     )
                 )
-        result.notes.append(f"{label} = {log.name}: " + "; ".join(log.notes))
+        notes = list(log.notes)
+        if spans:
+            notes.append(
+                f"{RESTING}: {len(still_t)} still 1 s windows in "
+                + ", ".join(segment.describe(log.duration) for segment in spans)
+            )
+        result.notes.append(f"{label} = {log.name}: " + "; ".join(notes))
     return result
 
 

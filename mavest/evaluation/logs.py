@@ -8,6 +8,10 @@ autopilot's own estimate starts later than its IMU samples). Roll and pitch: RMS
 ZYX Euler angle differences, wrapped; inclination: RMSE of the tilt error (BROAD's
 scoring, :func:`~mavest.evaluation.metrics.attitude_errors`). Heading is not scored: a
 6-D filter has none.
+
+A reference no estimator wrote: :func:`gravity_at_rest`, the gravity direction the
+accelerometer itself shows wherever the vehicle lies still (an autopilot's attitude lags
+after a crash as any filter's does).
 """
 
 from __future__ import annotations
@@ -19,9 +23,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from mavest.evaluation.metrics import attitude_errors, wrap_angles
-from mavest.so3 import euler_zyx_from_quats
+from mavest.so3 import euler_zyx_from_quats, quats_from_euler_zyx
 
-__all__ = ["Score", "Segment", "score", "score_segments", "slerp_onto"]
+__all__ = ["Score", "Segment", "gravity_at_rest", "score", "score_segments", "slerp_onto"]
 
 #: An estimate: (N,) times in s and (N, 4) quaternions (w, x, y, z), body → NED.
 TimedAttitude = tuple[np.ndarray, np.ndarray]
@@ -99,3 +103,61 @@ def score_segments(
             name: score(q[chosen], q_ref[chosen]) for name, q in at_reference.items()
         }
     return scores
+
+
+#: Standard gravity, m/s²: a still accelerometer reads about this much (its own
+#: scale and bias error included: log171's reads 9.59 right way up, 10.05 inverted).
+_GRAVITY = 9.80665
+
+
+def gravity_at_rest(
+    t: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    spans: Sequence[Segment],
+    window: float = 1.0,
+    max_mean_rate: float = np.radians(2.0),
+    max_rate_spread: float = np.radians(5.0),
+    max_norm_error: float = 0.6,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The accelerometer's gravity direction in the windows where the vehicle lies still.
+
+    Within ``spans``, consecutive ``window``-long stretches of samples count as still
+    when their mean rate is under ``max_mean_rate`` (the attitude does not change
+    over the window), the rate's spread under ``max_rate_spread`` (no flight: a
+    hovering multicopter's accelerometer reads "level" whatever its tilt, but its
+    motors shake the gyro), and the mean specific force is within ``max_norm_error``
+    of g. There the mean specific force is −g along the world vertical. (A steady
+    acceleration without rotation shows only in the norm: under ~3.5 m/s² it would
+    pass, hence ``spans``, the stretches the vehicle is known to lie in.)
+
+    Returns the windows' mid times (W,) and attitudes (W, 4) (w, x, y, z), body → NED,
+    heading 0: only roll, pitch and inclination may be scored against them (ZYX roll
+    and pitch do not depend on heading).
+    """
+    times: list[float] = []
+    down: list[np.ndarray] = []
+    for span in spans:
+        start = max(span.start, float(t[0]))
+        while start + window <= min(span.end, float(t[-1])):
+            inside = slice(*np.searchsorted(t, [start, start + window]))
+            start += window
+            if inside.stop - inside.start < 2:
+                continue
+            rate = gyro[inside]
+            force = accel[inside].mean(axis=0)
+            norm = float(np.linalg.norm(force))
+            if (
+                np.linalg.norm(rate.mean(axis=0)) < max_mean_rate
+                and np.linalg.norm(rate.std(axis=0)) < max_rate_spread
+                and abs(norm - _GRAVITY) < max_norm_error
+            ):
+                times.append(float(t[inside].mean()))
+                down.append(-force / norm)
+    if not times:
+        return np.empty(0), np.empty((0, 4))
+    d = np.array(down)  # world down in the body: (−sin θ, cos θ sin φ, cos θ cos φ)
+    roll = np.arctan2(d[:, 1], d[:, 2])
+    pitch = -np.arcsin(np.clip(d[:, 0], -1.0, 1.0))
+    angles = np.column_stack([roll, pitch, np.zeros_like(roll)])
+    return np.array(times), quats_from_euler_zyx(angles)
