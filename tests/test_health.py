@@ -304,18 +304,23 @@ def test_a_gyro_below_the_clip_limit_changes_nothing() -> None:
 
 
 def test_a_sample_dropped_at_its_fields_limit_tells_the_estimator() -> None:
-    from mavest.mavlink.messages import MAVLink, decode_imu, gyro_at_limit
+    from mavest.mavlink.messages import ImuSample, MAVLink, decode_imu
 
     mav = MAVLink(None, srcSystem=1, srcComponent=1)
 
-    def raw_imu(xgyro: int, zacc: int) -> object:
+    def raw_imu(xgyro: int, zacc: int) -> ImuSample:
         packet = mav.raw_imu_encode(1000, 0, 0, zacc, xgyro, 0, 0, 0, 0, 0, 0, 0).pack(mav)
-        return decode_imu(MAVLink(None).parse_buffer(packet)[0])
+        sample = decode_imu(MAVLink(None).parse_buffer(packet)[0])
+        assert sample is not None
+        return sample
 
-    assert gyro_at_limit(raw_imu(32767, -1000))  # type: ignore[arg-type]
-    assert gyro_at_limit(raw_imu(-32768, -1000))  # type: ignore[arg-type]
-    assert not gyro_at_limit(raw_imu(32766, -1000))  # type: ignore[arg-type]
-    assert not gyro_at_limit(raw_imu(0, -32768))  # the accelerometer clipped, not the gyro
+    def clipped(sample: ImuSample) -> tuple[bool, bool, bool]:
+        return sample.gyro_saturated, sample.accel_saturated, sample.saturated
+
+    assert clipped(raw_imu(32767, -1000)) == (True, False, True)
+    assert clipped(raw_imu(-32768, -1000)) == (True, False, True)
+    assert clipped(raw_imu(32766, -1000)) == (False, False, False)
+    assert clipped(raw_imu(0, -32768)) == (False, True, True)  # the accelerometer clipped
     estimator = _settled()
     estimator.gyro_clipped()
     t, gyro, accel = _at_rest(1.0, 200.0, seed=2)

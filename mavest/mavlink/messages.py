@@ -144,8 +144,14 @@ class ImuSample(NamedTuple):
     gyro: tuple[float, float, float]  # rad/s, FRD
     accel: tuple[float, float, float]  # m/s², specific force, FRD
     mag: tuple[float, float, float] | None  # µT, None when not sent
-    # a gyro or accelerometer axis at its integer field's limit: clipped, not measured
-    saturated: bool = False
+    # a gyro / accelerometer axis at its integer field's limit: clipped, not measured
+    gyro_saturated: bool = False
+    accel_saturated: bool = False
+
+    @property
+    def saturated(self) -> bool:
+        """A gyro or accelerometer axis clipped: the sample is not a measurement."""
+        return self.gyro_saturated or self.accel_saturated
 
 
 def decode_imu(message: Any) -> ImuSample | None:
@@ -171,8 +177,11 @@ def decode_imu(message: Any) -> ImuSample | None:
     gx, gy, gz = message.xgyro, message.ygyro, message.zgyro
     ax, ay, az = message.xacc, message.yacc, message.zacc
     limits = fmt.limits
-    saturated = limits is not None and (
-        min(gx, gy, gz, ax, ay, az) <= limits[0] or max(gx, gy, gz, ax, ay, az) >= limits[1]
+    gyro_saturated = limits is not None and (
+        min(gx, gy, gz) <= limits[0] or max(gx, gy, gz) >= limits[1]
+    )
+    accel_saturated = limits is not None and (
+        min(ax, ay, az) <= limits[0] or max(ax, ay, az) >= limits[1]
     )
     return ImuSample(
         StreamKey(header.srcSystem, header.srcComponent, name, instance),
@@ -181,18 +190,9 @@ def decode_imu(message: Any) -> ImuSample | None:
         (gx * g, gy * g, gz * g),
         (ax * a, ay * a, az * a),
         (message.xmag * m, message.ymag * m, message.zmag * m) if mag_fresh else None,
-        saturated,
+        gyro_saturated,
+        accel_saturated,
     )
-
-
-def gyro_at_limit(sample: ImuSample) -> bool:
-    """Whether a gyro axis of ``sample`` is at its integer field's limit: it clipped."""
-    fmt = IMU_FORMATS[sample.stream.message]
-    if not sample.saturated or fmt.limits is None:
-        return False
-    low, high = fmt.limits
-    raw = [round(rate / fmt.gyro_scale) for rate in sample.gyro]
-    return min(raw) <= low or max(raw) >= high
 
 
 class Encoder:

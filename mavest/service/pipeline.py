@@ -34,7 +34,6 @@ from mavest.mavlink.messages import (
     MAVLink,
     StreamKey,
     decode_imu,
-    gyro_at_limit,
     mavlink2,
     time_boot_ms,
 )
@@ -402,7 +401,7 @@ class Pipeline:
             or accel == (0.0, 0.0, 0.0)
         ):
             _reject(stream, _rejection_reason(sample))
-            if gyro_at_limit(sample):  # the rotation it missed is unknown
+            if sample.gyro_saturated:  # the rotation it missed is unknown
                 stream.estimator.gyro_clipped()
             return
         clock = stream.clock
