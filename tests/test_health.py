@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from mavest import Estimator, EstimatorConfig, StepFlags
 from mavest.estimator.recursion import _state_is_healthy
+from mavest.evaluation.metrics import attitude_errors
 from mavest.mavlink.tlog import TlogReader
 from mavest.service.config import ServiceConfig
 from mavest.service.pipeline import Pipeline
@@ -175,15 +176,20 @@ def test_a_confidently_wrong_bias_is_a_divergence_and_re_initialisation_cures_it
 
 
 @pytest.mark.parametrize("seed", [2, 4])
-def test_turning_flights_without_aiding_reopen_tilt_but_never_diverge(seed: int) -> None:
+def test_turning_flights_without_aiding_may_reopen_tilt_but_never_diverge(seed: int) -> None:
     # the hardest case for the accelerometer: coordinated turns with their linear
-    # acceleration not removed (no GPS); in these two flights a turn lasts long
-    # enough for tilt to be reopened once, which is not a divergence
+    # acceleration not removed (no GPS); in these two flights a turn lasts about as
+    # long as accel_max_disturbance_time, so tilt may be reopened (measured: once, at
+    # 42.3 s and 60.3 s; a few ULPs elsewhere have made it none), which is not a
+    # divergence. Tilt error peaks at 40.0° and 36.5°, and comes back.
     flight = fly(120.0, 200.0, seed)
     gyro, accel = apply_imu_errors(flight, seed=seed)
     out = Estimator().update_batch(flight.t, gyro, accel)
-    assert np.count_nonzero(out.flags & StepFlags.TILT_REOPENED) == 1
+    assert np.count_nonzero(out.flags & StepFlags.TILT_REOPENED) <= 2
     assert not np.any(out.flags & RESETS)
+    tilt = np.degrees(attitude_errors(out.q, flight.q_true).inclination)
+    assert tilt.max() < 50.0
+    assert tilt[flight.t > 100.0].max() < 2.0 * tilt.max() / 3.0
 
 
 def test_the_service_reports_a_reset_in_its_log_summary_and_recording(
