@@ -65,11 +65,14 @@ def jacobian_into(
     else:
         so3.hat_into(h, D)
     for k in range(2):
+        # (B_zᵀ J)[k, :], then (B_zᵀ J D)[k, j] summed over i as a dense product would
+        bj0 = Bz[0, k] * J[0, 0] + Bz[1, k] * J[1, 0] + Bz[2, k] * J[2, 0]
+        bj1 = Bz[0, k] * J[0, 1] + Bz[1, k] * J[1, 1] + Bz[2, k] * J[2, 1]
+        bj2 = Bz[0, k] * J[0, 2] + Bz[1, k] * J[1, 2] + Bz[2, k] * J[2, 2]
         for j in range(3):
             acc = 0.0
-            for i in range(3):
-                # (B_zᵀ J D)[k, j]
-                bj = Bz[0, k] * J[0, i] + Bz[1, k] * J[1, i] + Bz[2, k] * J[2, i]
-                acc += bj * D[i, j]
+            acc += bj0 * D[0, j]
+            acc += bj1 * D[1, j]
+            acc += bj2 * D[2, j]
             H[k, j] = acc
             H[k, j + 3] = 0.0

@@ -222,7 +222,6 @@ STATE_DTYPE = np.dtype(
         ("w_C", np.float64, (N_STATE_MAX, 2)),
         ("w_C3", np.float64, (N_STATE_MAX, 3)),
         ("w_G", np.float64, (2, 3)),
-        ("w_rows", np.float64, (3, N_STATE_MAX)),
         ("w_S3", np.float64, (3, 3)),
         ("w_W", np.float64, (3, 3)),
         ("w_S", np.float64, (2, 2)),

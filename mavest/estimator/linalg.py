@@ -77,27 +77,33 @@ def inverse_3x3_into(S: np.ndarray, out: np.ndarray) -> float:
 
 
 @kernel
-def left_multiply_rows3(P: np.ndarray, r0: int, M: np.ndarray, work: np.ndarray) -> None:
-    """P[r0:r0+3, :] ← M P[r0:r0+3, :] for a 3×3 M (``work``: 3×n scratch)."""
-    n = P.shape[1]
-    for a in range(3):
-        for j in range(n):
-            work[a, j] = M[a, 0] * P[r0, j] + M[a, 1] * P[r0 + 1, j] + M[a, 2] * P[r0 + 2, j]
-    for a in range(3):
-        for j in range(n):
-            P[r0 + a, j] = work[a, j]
+def left_multiply_rows3(P: np.ndarray, r0: int, M: np.ndarray) -> None:
+    """P[r0:r0+3, :] ← M P[r0:r0+3, :] for a 3×3 M, in place.
+
+    Each column's three entries are read before any is written, so no scratch
+    is needed; every entry is the same sum, in the same order, as a dense product.
+    """
+    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
+    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
+    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
+    for j in range(P.shape[1]):
+        p0, p1, p2 = P[r0, j], P[r0 + 1, j], P[r0 + 2, j]
+        P[r0, j] = m00 * p0 + m01 * p1 + m02 * p2
+        P[r0 + 1, j] = m10 * p0 + m11 * p1 + m12 * p2
+        P[r0 + 2, j] = m20 * p0 + m21 * p1 + m22 * p2
 
 
 @kernel
-def right_multiply_cols3(P: np.ndarray, c0: int, M: np.ndarray, work: np.ndarray) -> None:
-    """P[:, c0:c0+3] ← P[:, c0:c0+3] Mᵀ for a 3×3 M (``work``: 3×n scratch)."""
-    n = P.shape[0]
-    for a in range(3):
-        for i in range(n):
-            work[a, i] = M[a, 0] * P[i, c0] + M[a, 1] * P[i, c0 + 1] + M[a, 2] * P[i, c0 + 2]
-    for a in range(3):
-        for i in range(n):
-            P[i, c0 + a] = work[a, i]
+def right_multiply_cols3(P: np.ndarray, c0: int, M: np.ndarray) -> None:
+    """P[:, c0:c0+3] ← P[:, c0:c0+3] Mᵀ for a 3×3 M, in place (as :func:`left_multiply_rows3`)."""
+    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
+    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
+    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
+    for i in range(P.shape[0]):
+        p0, p1, p2 = P[i, c0], P[i, c0 + 1], P[i, c0 + 2]
+        P[i, c0] = m00 * p0 + m01 * p1 + m02 * p2
+        P[i, c0 + 1] = m10 * p0 + m11 * p1 + m12 * p2
+        P[i, c0 + 2] = m20 * p0 + m21 * p1 + m22 * p2
 
 
 @kernel
@@ -106,16 +112,63 @@ def gain_update(P: np.ndarray, K: np.ndarray, C: np.ndarray, S: np.ndarray, m: i
 
     For a measurement r = H x + v with C = P Hᵀ and S = H P Hᵀ + V this is the
     Joseph form (I − K H) P (I − K H)ᵀ + K V Kᵀ expanded, at O(n² m) instead of
-    O(n³); it holds for a suboptimal (e.g. Schmidt) gain as well. K, C: n×m.
+    O(n³); it holds for a suboptimal (e.g. Schmidt) gain as well. K, C: n×m, m ≤ 3.
+    The lower triangle is computed, then mirrored.
+
+    K S is formed once per row, and the trailing rows where K is zero (the
+    considered states of a Schmidt gain) drop the products with that zero: a
+    pair of such rows keeps P, a pair with one of them loses C Kᵀ's term only.
+    Each entry is the same sum, in the same order, as the plain expansion (the
+    dropped terms are exact zeros), so the result is the same to the bit, but
+    for the sign of an exact zero.
     """
+    if m > 3:
+        raise ValueError("gain_update: at most 3 measurement dimensions")
     n = P.shape[0]
+    gain_rows = n  # K[gain_rows:] is zero
+    while gain_rows > 0:
+        zero = True
+        for a in range(m):
+            if K[gain_rows - 1, a] != 0.0:
+                zero = False
+        if not zero:
+            break
+        gain_rows -= 1
     for i in range(n):
-        for j in range(i + 1):
-            acc = P[i, j]
-            for a in range(m):
-                ks = 0.0
-                for b in range(m):
-                    ks += K[i, b] * S[b, a]
-                acc += -K[i, a] * C[j, a] - C[i, a] * K[j, a] + ks * K[j, a]
-            P[i, j] = acc
-            P[j, i] = acc
+        # row i of K and C held in scalars (the loops below read them every j)
+        k0, c0 = K[i, 0], C[i, 0]
+        k1 = K[i, 1] if m > 1 else 0.0
+        c1 = C[i, 1] if m > 1 else 0.0
+        k2 = K[i, 2] if m > 2 else 0.0
+        c2 = C[i, 2] if m > 2 else 0.0
+        if i < gain_rows:
+            # (K S)[i, a], each summed from 0 over b as in the plain expansion
+            ks0 = 0.0
+            ks1 = 0.0
+            ks2 = 0.0
+            for b in range(m):
+                ks0 += K[i, b] * S[b, 0]
+                if m > 1:
+                    ks1 += K[i, b] * S[b, 1]
+                if m > 2:
+                    ks2 += K[i, b] * S[b, 2]
+            for j in range(i + 1):
+                acc = P[i, j]
+                acc += -k0 * C[j, 0] - c0 * K[j, 0] + ks0 * K[j, 0]
+                if m > 1:
+                    acc += -k1 * C[j, 1] - c1 * K[j, 1] + ks1 * K[j, 1]
+                if m > 2:
+                    acc += -k2 * C[j, 2] - c2 * K[j, 2] + ks2 * K[j, 2]
+                P[i, j] = acc
+        else:  # K's row i is zero: −C Kᵀ's term alone, and nothing where K's row j is zero
+            for j in range(gain_rows):
+                acc = P[i, j]
+                acc -= c0 * K[j, 0]
+                if m > 1:
+                    acc -= c1 * K[j, 1]
+                if m > 2:
+                    acc -= c2 * K[j, 2]
+                P[i, j] = acc
+    for i in range(n):
+        for j in range(i):
+            P[j, i] = P[i, j]

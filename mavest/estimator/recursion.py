@@ -207,12 +207,12 @@ def _transform_blocks(
     O(n) per block instead of the O(n³) of a dense product. With
     ``with_considered`` false, the considered blocks are left alone (W = I).
     """
-    left_multiply_rows3(P, 0, A, s.w_rows)
-    right_multiply_cols3(P, 0, A, s.w_rows)
+    left_multiply_rows3(P, 0, A)
+    right_multiply_cols3(P, 0, A)
     if with_considered and c.n_state > N_ERROR:
         for block in (_EPS, _RATE, _VEL):
-            left_multiply_rows3(P, block, W, s.w_rows)
-            right_multiply_cols3(P, block, W, s.w_rows)
+            left_multiply_rows3(P, block, W)
+            right_multiply_cols3(P, block, W)
 
 
 @kernel
@@ -702,22 +702,35 @@ def _gravity_jacobian(s: StateRecord, c: CoefficientsRecord) -> None:
 
 @kernel
 def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: float) -> float:
-    """C = Pi Hᵀ (w_C), S = H C + var I (w_S), K = C S⁻¹ (w_K); returns the NIS of w_r."""
+    """C = Pi Hᵀ (w_C), S = H C + var I (w_S), K = C S⁻¹ (w_K); returns the NIS of w_r.
+
+    The gravity Jacobian (:func:`_gravity_jacobian`) is zero on the bias and on
+    ε_z, ḟ and v: the sums run over its other columns only (δθ, ε_x, ε_y), in
+    the order of the full sums, which the exact zeros left unchanged. K's
+    considered rows are zero (Schmidt: ε's mean is never estimated).
+    """
     n = c.n_state
     H = s.w_H
     C = s.w_C
     K = s.w_K
+    considered = n > N_ERROR
     for i in range(n):
         for k in range(2):
             acc = 0.0
-            for j in range(n):
+            for j in range(3):
                 acc += Pi[i, j] * H[k, j]
+            if considered:
+                acc += Pi[i, _EPS] * H[k, _EPS]
+                acc += Pi[i, _EPS + 1] * H[k, _EPS + 1]
             C[i, k] = acc
     for a in range(2):
         for b in range(2):
             acc = var if a == b else 0.0
-            for j in range(n):
+            for j in range(3):
                 acc += H[a, j] * C[j, b]
+            if considered:
+                acc += H[a, _EPS] * C[_EPS, b]
+                acc += H[a, _EPS + 1] * C[_EPS + 1, b]
             s.w_S[a, b] = acc
     s01 = 0.5 * (s.w_S[0, 1] + s.w_S[1, 0])
     s.w_S[0, 1] = s01
@@ -725,9 +738,12 @@ def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: floa
     s00, s11 = s.w_S[0, 0], s.w_S[1, 1]
     det = s00 * s11 - s01 * s01
     i00, i01, i11 = s11 / det, -s01 / det, s00 / det
-    for i in range(n):
+    for i in range(N_ERROR):
         K[i, 0] = C[i, 0] * i00 + C[i, 1] * i01
         K[i, 1] = C[i, 0] * i01 + C[i, 1] * i11
+    for i in range(N_ERROR, n):
+        K[i, 0] = 0.0
+        K[i, 1] = 0.0
     if _gravity_leaves_heading(s):
         _drop_heading_gain(s, c, K, 2)
     r0, r1 = s.w_r[0], s.w_r[1]
@@ -735,19 +751,18 @@ def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: floa
 
 
 @kernel
-def _joseph_update(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray) -> None:
-    """P = (I − K H) Pi (I − K H)ᵀ + K V Kᵀ with the considered rows of K zeroed.
+def _joseph_update(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, from_prior: bool) -> None:
+    """P = (I − K H) Pi (I − K H)ᵀ + K V Kᵀ with the considered rows of K zero.
 
     The Joseph form is the covariance for any gain, so it stays exact for the
     Schmidt gain, which leaves ε's mean (and so its rows of K) alone. It is
-    evaluated as the rank-2 update of Pi (:func:`gain_update`).
+    evaluated as the rank-2 update of Pi (:func:`gain_update`); ``from_prior``:
+    Pi is P itself (a single iteration), which is then updated in place.
     """
     n = c.n_state
-    for i in range(_EPS, n):
-        s.w_K[i, 0] = 0.0
-        s.w_K[i, 1] = 0.0
     P = s.P[:n, :n]
-    P[:, :] = Pi
+    if not from_prior:
+        P[:, :] = Pi
     gain_update(P, s.w_K[:n], s.w_C[:n], s.w_S, 2)
 
 
@@ -764,7 +779,9 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
     n = c.n_state
     s.w_prior_q[:] = s.q
     s.w_prior_b[:] = s.b
-    Pi = s.w_A[:n, :n]
+    # the prior seen from the iterate: P itself at the first (read only until
+    # the Joseph form), its transport T P Tᵀ into w_A at later ones
+    Pi = s.P[:n, :n]
     d = s.w_d
     m = s.w_m
     dx = s.w_dx
@@ -773,7 +790,6 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
     r = s.w_r
     for it in range(c.max_iterations):
         if it == 0:
-            Pi[:, :] = s.P[:n, :n]
             for i in range(n):
                 m[i] = 0.0
         else:
@@ -784,6 +800,7 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
                 d[i] = 0.0
             reset_jacobian_into(d[:3], c.error, c.chart, c.reset, s.w_m33)
             _world_move_into(s.q, s.w_prior_q, s.w_W, s.w_q4)
+            Pi = s.w_A[:n, :n]
             Pi[:, :] = s.P[:n, :n]
             _transform_blocks(s, c, Pi, s.w_m33, s.w_W, True)
             T = s.w_m33  # m = −T d: only δθ is transported (d's considered part is 0)
@@ -800,12 +817,16 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
             s.nis = nis
             if gate > 0.0 and not nis <= gate:
                 return False
-        # δ = m − K (r + H m)
+        # δ = m − K (r + H m), over H's non-zero columns (:func:`_solve_gain`)
         y0 = r[0]
         y1 = r[1]
-        for j in range(n):
+        for j in range(3):
             y0 += H[0, j] * m[j]
             y1 += H[1, j] * m[j]
+        if n > N_ERROR:
+            for j in range(_EPS, _EPS + 2):
+                y0 += H[0, j] * m[j]
+                y1 += H[1, j] * m[j]
         for i in range(n):
             dx[i] = m[i] - K[i, 0] * y0 - K[i, 1] * y1
         # the step of the estimate (ε's is discarded), and of its attitude alone
@@ -821,7 +842,7 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
         tolerance = c.iteration_tolerance
         if step_norm2 <= tolerance * tolerance or attitude_step2 <= 0.1 * tolerance:
             break
-    _joseph_update(s, c, Pi)
+    _joseph_update(s, c, Pi, s.iterations == 1)
     _reset_covariance(s, c, dx)
     return True
 
@@ -1071,10 +1092,22 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
         M[:, :] = s.w_m33
     n = c.n_state
     P = s.P
+    # For the left error M = [a]× has a zero diagonal: its products are dropped
+    # (exact zeros, so every sum keeps its value and order)
+    diagonal = c.error != ERROR_LEFT
+    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
+    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
+    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
     for j in range(n):  # rows: T P
-        m0 = M[0, 0] * P[0, j] + M[0, 1] * P[1, j] + M[0, 2] * P[2, j]
-        m1 = M[1, 0] * P[0, j] + M[1, 1] * P[1, j] + M[1, 2] * P[2, j]
-        m2 = M[2, 0] * P[0, j] + M[2, 1] * P[1, j] + M[2, 2] * P[2, j]
+        p0, p1, p2 = P[0, j], P[1, j], P[2, j]
+        if diagonal:
+            m0 = m00 * p0 + m01 * p1 + m02 * p2
+            m1 = m10 * p0 + m11 * p1 + m12 * p2
+            m2 = m20 * p0 + m21 * p1 + m22 * p2
+        else:
+            m0 = m01 * p1 + m02 * p2
+            m1 = m10 * p0 + m12 * p2
+            m2 = m20 * p0 + m21 * p1
         P[_EPS, j] += g0 * m0
         P[_EPS + 1, j] += g0 * m1
         P[_EPS + 2, j] += g0 * m2
@@ -1082,9 +1115,15 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
         P[_RATE + 1, j] += g1 * m1
         P[_RATE + 2, j] += g1 * m2
     for i in range(n):  # columns: (T P) Tᵀ
-        m0 = M[0, 0] * P[i, 0] + M[0, 1] * P[i, 1] + M[0, 2] * P[i, 2]
-        m1 = M[1, 0] * P[i, 0] + M[1, 1] * P[i, 1] + M[1, 2] * P[i, 2]
-        m2 = M[2, 0] * P[i, 0] + M[2, 1] * P[i, 1] + M[2, 2] * P[i, 2]
+        p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
+        if diagonal:
+            m0 = m00 * p0 + m01 * p1 + m02 * p2
+            m1 = m10 * p0 + m11 * p1 + m12 * p2
+            m2 = m20 * p0 + m21 * p1 + m22 * p2
+        else:
+            m0 = m01 * p1 + m02 * p2
+            m1 = m10 * p0 + m12 * p2
+            m2 = m20 * p0 + m21 * p1
         P[i, _EPS] += g0 * m0
         P[i, _EPS + 1] += g0 * m1
         P[i, _EPS + 2] += g0 * m2
