@@ -291,7 +291,8 @@ def test_heading_update_covariance_is_the_joseph_form_with_the_full_jacobian(
     and the *full* H (the tilt leak through the dip included), H taken here by finite
     differences of the azimuth; the gain moves heading and the bias about the vertical
     only. The field is chosen with zero innovation, so the estimate does not move and the
-    reset leaves P alone."""
+    reset leaves P alone. The noise turns the field the tilt leaks along: H's tilt part
+    is its mean over that turn, e^(−σ²/2), and the rest of the leak's variance is in R."""
     from mavest.estimator.charts import retract_into
     from mavest.estimator.layout import ERROR_LEFT, make_coefficients, new_state
     from mavest.estimator.recursion import mag_update
@@ -341,14 +342,23 @@ def test_heading_update_covariance_is_the_joseph_form_with_the_full_jacobian(
     np.testing.assert_array_equal(K[6:], 0.0)  # considered
     assert abs(K[:3] @ vertical) > 1e-4
     var = config.mag_heading_noise_density**2 / dt
-    I_KH = np.eye(n) - np.outer(K, H)
-    expected = I_KH @ P @ I_KH.T + var * np.outer(K, K)
+    H_tilt = H.copy()
+    H_tilt[:3] += vertical  # H minus its heading part (−the vertical)
+    along_noise = math.exp(-0.5 * var)
+    H_mean = H - (1.0 - along_noise) * H_tilt
+    R = var + (1.0 - along_noise**2) * (H_tilt @ P @ H_tilt)
+    I_KH = np.eye(n) - np.outer(K, H_mean)
+    expected = I_KH @ P @ I_KH.T + R * np.outer(K, K)
     tolerance = 1e-6 * np.abs(P).max()
     np.testing.assert_allclose(s["P"][:n, :n], expected, rtol=0, atol=tolerance)
     # the heading part of H alone (−the vertical) would give another P: what this tells apart
     H_heading = np.zeros(n)
     H_heading[:3] = -vertical
     I_KH = np.eye(n) - np.outer(K, H_heading)
+    other = I_KH @ P @ I_KH.T + var * np.outer(K, K)
+    assert np.abs(other - expected).max() > 100.0 * tolerance
+    # and so would the full H without the noise's mean
+    I_KH = np.eye(n) - np.outer(K, H)
     other = I_KH @ P @ I_KH.T + var * np.outer(K, K)
     assert np.abs(other - expected).max() > 100.0 * tolerance
 

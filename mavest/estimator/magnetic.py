@@ -30,11 +30,26 @@ it is counted as white noise of the same low-frequency power, its variance ×
 ``mag_tilt_leak_time``/Δt (3 s, the accelerometer low-pass's time). The
 covariance is the Joseph form for that gain with the *full* H — C = P Hᵀ,
 S = H P Hᵀ + R — the true covariance of the estimate this gain makes, leak
-and tilt–heading correlation included. In turn, once a magnetometer
-references heading, a gravity update without a known acceleration leaves
-heading alone (its gain loses its component about the vertical, the
-covariance again the Joseph form): the honest tilt–heading correlation would
-otherwise let every tilt correction move heading. Each update moves only
+and tilt–heading correlation included.
+
+Two things make that H the right one. It is taken at the prediction, the
+reference field (the learned dip), not at the sample's own dip: that one
+carries the tilt error along the field (the dip seen moves by it) and the
+noise, so a gain made from it counted less leak exactly when the tilt made
+the leak large one way and more when it was the other, and heading followed
+the tilt — a rectified error no linear covariance holds. And the noise the
+filter claims is a random turn of the horizontal field (variance
+σ² = density²/Δt per sample, 0.8 rad at 100 Hz with the default), which
+turns the direction the tilt leaks along with it: on average the leak is
+e^(−σ²/2) H_τ τ (the expected Jacobian over that noise) and the rest of
+its variance, the fraction 1 − e^(−σ²), is white as the noise is. H_τ is
+scaled by the first, R grows by the second.
+
+In turn, once a magnetometer references heading, a gravity update without
+a known acceleration leaves heading alone (its gain loses its component
+about the vertical, the covariance again the Joseph form): the honest
+tilt–heading correlation would otherwise let every tilt correction move
+heading. Each update moves only
 what it measures and both covariances stay exact for the gains used. (With
 the acceleration known, gravity does see heading in turns and keeps its
 gain; without a magnetometer the 6-D filter is unchanged.)
@@ -55,8 +70,14 @@ Without the leak's inflation the honest covariance is in band but the gain,
 now seeing heading's true variance, follows the leak (BROAD 4.7°); with it
 (and gravity leaving heading alone) BROAD 9-D is 1.90° / 1.75°, both
 scenarios in band (6.1 / 3.3, 6.9 / 3.7), and simulated heading RMSE 3.5° /
-6.8° against the white-leak gain's 2.6° / 4.2°: honesty costs accuracy only
-where the leak the old gain ignored was large. This is
+6.8° against the white-leak gain's 2.6° / 4.2°. At 100 runs that left
+``large_heading_9d`` optimistic while heading converged (6.79 / 3.48,
+heading's own NEES 2–3 over 2–10 s, its error correlated with the tilt
+along the field twice as much as P said), which H at the measured dip did
+and the same field averaged to 10 Hz did not; with H at the reference dip
+and the noise's mean both scenarios are in band (seed 0: 5.93 / 2.86,
+5.83 / 2.83; seed 100: 5.77 / 2.88, 5.49 / 2.84), heading RMSE 2.6° / 4.0°,
+BROAD 9-D 1.897° / 1.750°. This is
 the magnetometer half of VQF's idea (Laidig & Seel 2023: heading corrected
 in the 6-D earth frame), made a Kalman update.
 """
@@ -121,8 +142,9 @@ def heading_jacobian_into(
 ) -> None:
     """H (3) of the azimuth with respect to the attitude error; R (3×3) is scratch.
 
-    Evaluated at the reference field with the measured dip: the linearisation
-    point the filter believes in (azimuth = declination).
+    Evaluated at the reference field (azimuth = declination, and the dip
+    given: mag_update passes the reference's), the linearisation point the
+    filter believes in.
     """
     slope = math.tan(dip)
     h0 = slope * math.cos(declination)

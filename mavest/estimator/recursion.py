@@ -1437,25 +1437,37 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
     nu = magnetic.wrap(azimuth - c.mag_declination)
     # The measurement: y = H δx + w, H = (H_τ, −1) in world axes, the tilt
     # error leaking into the azimuth through the dip (H_τ = tan(dip)·(cos d, sin d)).
+    # H is taken at the reference field (its learned dip), the prediction, not
+    # at this sample's dip: that carries the tilt error and the noise, and a
+    # gain made from it grew with the very leak it discounts (module docstring).
     Hf = s.w_v3  # the full H (error frame)
     Hp = s.w_Hm  # its heading part H_ψ (the same at zero dip)
-    magnetic.heading_jacobian_into(s.q, dip, c.mag_declination, c.error, s.w_R, Hf)
+    magnetic.heading_jacobian_into(s.q, s.mag_ref_dip, c.mag_declination, c.error, s.w_R, Hf)
     magnetic.heading_jacobian_into(s.q, 0.0, c.mag_declination, c.error, s.w_R, Hp)
     n = c.n_state
     P = s.P
     C = s.w_Cm
     K = s.w_Km
     var_mag = c.mag_heading_var_density / dt_mag
-    # The gain's innovation variance: heading's, the field's noise, and the
-    # leak (H − H_ψ) P (H − H_ψ)ᵀ counted as noise — not through P's
-    # tilt–heading correlation (see the module docstring for why) — and,
-    # being a slowly varying error (tilt corrects over ~mag_tilt_leak_time),
-    # as white noise of the same low-frequency power: a sample counts the
-    # leak's variance × mag_tilt_leak_time/Δt.
+    # The azimuth noise turns the horizontal field the tilt leaks along, by an
+    # angle of variance var_mag: on average the leak is e^(−var_mag/2) H_τ τ
+    # (the expected Jacobian), and the rest of its variance, (1 − e^(−var_mag))
+    # of (H − H_ψ) P (H − H_ψ)ᵀ, is as white as that noise.
+    along_noise = math.exp(-0.5 * var_mag)
     leak = 0.0
     for i in range(3):
         for j in range(3):
             leak += (Hf[i] - Hp[i]) * P[i, j] * (Hf[j] - Hp[j])
+    var_mag += (1.0 - along_noise * along_noise) * leak
+    leak *= along_noise * along_noise
+    for i in range(3):
+        Hf[i] = Hp[i] + along_noise * (Hf[i] - Hp[i])
+    # The gain's innovation variance: heading's, the noise, and the mean leak
+    # (H − H_ψ) P (H − H_ψ)ᵀ counted as noise — not through P's tilt–heading
+    # correlation (see the module docstring for why) — and, being a slowly
+    # varying error (tilt corrects over ~mag_tilt_leak_time), as white noise
+    # of the same low-frequency power: a sample counts the leak's variance ×
+    # mag_tilt_leak_time/Δt.
     S = var_mag + leak * max(1.0, c.mag_tilt_leak_time / dt_mag)
     for i in range(n):
         C[i, 0] = P[i, 0] * Hp[0] + P[i, 1] * Hp[1] + P[i, 2] * Hp[2]
