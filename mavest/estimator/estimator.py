@@ -73,6 +73,7 @@ def _step_scalars(
 
 @kernel
 def _turn_heading(state: np.ndarray, coefficients: np.ndarray, psi: float) -> None:
+    """:func:`~mavest.estimator.recursion.turn_heading` on the state record."""
     turn_heading(state[0], coefficients[0], psi)
 
 

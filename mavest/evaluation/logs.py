@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from mavest.estimator.config import STANDARD_GRAVITY
 from mavest.evaluation.metrics import attitude_errors, wrap_angles
 from mavest.so3 import euler_zyx_from_quats, quats_from_euler_zyx
 
@@ -105,11 +106,6 @@ def score_segments(
     return scores
 
 
-#: Standard gravity, m/s²: a still accelerometer reads about this much (its own
-#: scale and bias error included: log171's reads 9.59 right way up, 10.05 inverted).
-_GRAVITY = 9.80665
-
-
 def gravity_at_rest(
     t: np.ndarray,
     gyro: np.ndarray,
@@ -127,9 +123,11 @@ def gravity_at_rest(
     over the window), the rate's spread under ``max_rate_spread`` (no flight: a
     hovering multicopter's accelerometer reads "level" whatever its tilt, but its
     motors shake the gyro), and the mean specific force is within ``max_norm_error``
-    of g. There the mean specific force is −g along the world vertical. (A steady
-    acceleration without rotation shows only in the norm: under ~3.5 m/s² it would
-    pass, hence ``spans``, the stretches the vehicle is known to lie in.)
+    of g (a still accelerometer's own scale and bias errors: log171's reads 9.59 m/s²
+    right way up, 10.05 inverted). There the mean specific force is −g along the
+    world vertical. (A steady acceleration without rotation shows only in the
+    norm: under ~3.5 m/s² it would pass, hence ``spans``, the stretches the
+    vehicle is known to lie in.)
 
     Returns the windows' mid times (W,) and attitudes (W, 4) (w, x, y, z), body → NED,
     heading 0: only roll, pitch and inclination may be scored against them (ZYX roll
@@ -150,7 +148,7 @@ def gravity_at_rest(
             if (
                 np.linalg.norm(rate.mean(axis=0)) < max_mean_rate
                 and np.linalg.norm(rate.std(axis=0)) < max_rate_spread
-                and abs(norm - _GRAVITY) < max_norm_error
+                and abs(norm - STANDARD_GRAVITY) < max_norm_error
             ):
                 times.append(float(t[inside].mean()))
                 down.append(-force / norm)
