@@ -1069,6 +1069,25 @@ def _absorb_sample(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt:
 
 
 @kernel
+def _times3(
+    M: np.ndarray, skew: bool, p0: float, p1: float, p2: float
+) -> tuple[float, float, float]:
+    """M (p0, p1, p2) for a 3×3 M; a skew M's zero diagonal is left out (its
+    products are exact zeros, so every sum keeps its value and order)."""
+    if skew:
+        return (
+            M[0, 1] * p1 + M[0, 2] * p2,
+            M[1, 0] * p0 + M[1, 2] * p2,
+            M[2, 0] * p0 + M[2, 1] * p1,
+        )
+    return (
+        M[0, 0] * p0 + M[0, 1] * p1 + M[0, 2] * p2,
+        M[1, 0] * p0 + M[1, 1] * p1 + M[1, 2] * p2,
+        M[2, 0] * p0 + M[2, 1] * p1 + M[2, 2] * p2,
+    )
+
+
+@kernel
 def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: float) -> None:
     """The attitude error's part in an aided sample: [ε; ḟ] += [Γ₀; Γ₁] M δθ.
 
@@ -1092,22 +1111,9 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
         M[:, :] = s.w_m33
     n = c.n_state
     P = s.P
-    # For the left error M = [a]× has a zero diagonal: its products are dropped
-    # (exact zeros, so every sum keeps its value and order)
-    diagonal = c.error != ERROR_LEFT
-    m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
-    m10, m11, m12 = M[1, 0], M[1, 1], M[1, 2]
-    m20, m21, m22 = M[2, 0], M[2, 1], M[2, 2]
+    skew = c.error == ERROR_LEFT  # M = [a]×
     for j in range(n):  # rows: T P
-        p0, p1, p2 = P[0, j], P[1, j], P[2, j]
-        if diagonal:
-            m0 = m00 * p0 + m01 * p1 + m02 * p2
-            m1 = m10 * p0 + m11 * p1 + m12 * p2
-            m2 = m20 * p0 + m21 * p1 + m22 * p2
-        else:
-            m0 = m01 * p1 + m02 * p2
-            m1 = m10 * p0 + m12 * p2
-            m2 = m20 * p0 + m21 * p1
+        m0, m1, m2 = _times3(M, skew, P[0, j], P[1, j], P[2, j])
         P[_EPS, j] += g0 * m0
         P[_EPS + 1, j] += g0 * m1
         P[_EPS + 2, j] += g0 * m2
@@ -1115,15 +1121,7 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
         P[_RATE + 1, j] += g1 * m1
         P[_RATE + 2, j] += g1 * m2
     for i in range(n):  # columns: (T P) Tᵀ
-        p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
-        if diagonal:
-            m0 = m00 * p0 + m01 * p1 + m02 * p2
-            m1 = m10 * p0 + m11 * p1 + m12 * p2
-            m2 = m20 * p0 + m21 * p1 + m22 * p2
-        else:
-            m0 = m01 * p1 + m02 * p2
-            m1 = m10 * p0 + m12 * p2
-            m2 = m20 * p0 + m21 * p1
+        m0, m1, m2 = _times3(M, skew, P[i, 0], P[i, 1], P[i, 2])
         P[i, _EPS] += g0 * m0
         P[i, _EPS + 1] += g0 * m1
         P[i, _EPS + 2] += g0 * m2
