@@ -263,6 +263,9 @@ class Estimator:
         """Adopt a state record, with views of the fields every update reads."""
         self._state = state
         self._step = _compiled_step(state, self._coefficients)
+        # loaded now, with the step, not when a declination first arrives: a live
+        # stream would stall for the load (~15 ms from numba's cache) mid-flight
+        self._turn = without_dispatch(_turn_heading, state.copy(), self._coefficients, 0.0)
         self._view_q = state["q"][0]
         self._view_b = state["b"][0]
         self._view_cov = state["P"][0, :N_ERROR, :N_ERROR]
@@ -366,7 +369,7 @@ class Estimator:
         turn = math.remainder(value - self.declination, math.tau)
         self._coefficients["mag_declination"] = value
         if self.initialised and self._state["t_mag_used"][0] > -math.inf and turn != 0.0:
-            _turn_heading(self._state, self._coefficients, turn)
+            self._turn(self._state, self._coefficients, turn)
 
     def gyro_clipped(self) -> None:
         """The gyro clipped (a sample the caller dropped, its field at the limit):
