@@ -262,8 +262,12 @@ def test_mavproxy_logs_mavests_attitude(mavproxy: Path, tmp_path: Path) -> None:
         report = asyncio.run(
             stream_flight(f"udpout:127.0.0.1:{service_port}", 100.0, seed=4, seconds=5.0)
         )
+        # The sender returns when its last sample is out, but a loaded service may
+        # still be answering (failures here were always the last 140 ms, answered
+        # after the service had been stopped); and MAVProxy logs from a queue of its
+        # own: wait until its log is still before stopping either.
+        _wait_until_still(proxy_log)
         assert service.stop()[0] == 0
-        # MAVProxy logs from a queue of its own: stopped at once, it can lose the last answers
         _wait_until_still(proxy_log)
     finally:
         proxy.send_signal(signal.SIGINT)
