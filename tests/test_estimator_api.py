@@ -70,13 +70,16 @@ _SERIES_FIELDS = (
     "heading_innovation",
     "heading_nis",
     "mag_used",
+    "euler",
 )
 
 
 @pytest.mark.parametrize("update", ["iterated", "sigma_point"])
 def test_update_loop_equals_update_batch_with_mag_and_linear_accel(update: str) -> None:
     """Every field of every step, bit for bit: a loop of update (arrays, tuples and None
-    mixed, as callers pass them) and update_batch taking over a live estimator."""
+    mixed, as callers pass them) and update_batch taking over a live estimator. The
+    loop's estimates are all kept and compared at the end: each stays as it was made
+    while later ones fill the estimator's output blocks."""
     data = simulate(30.0, 100.0, motion=Motion(velocity_sigma=2.0, burst_magnitude=4.0), seed=4)
     n = len(data.t)
     mag = data.mag.copy()

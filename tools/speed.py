@@ -27,9 +27,8 @@ from collections.abc import Callable
 import numpy as np
 
 from mavest import Estimator, EstimatorConfig, estimate
+from mavest.estimator.config import STANDARD_GRAVITY
 from mavest.sim import Motion, simulate
-
-G0 = 9.80665
 
 
 def _online_mavest(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
@@ -75,7 +74,7 @@ def _fusion_filter(rate: float) -> Callable[..., None] | None:
         ahrs.set_settings(settings)
         ahrs.set_sample_period(1.0 / rate)
         gyro_deg = np.degrees(gyro)
-        accel_g = accel / G0
+        accel_g = accel / STANDARD_GRAVITY
         update = ahrs.update_no_magnetometer
         for i in range(t.shape[0]):
             update(gyro_deg[i], accel_g[i])

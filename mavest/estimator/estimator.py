@@ -10,9 +10,8 @@ world frame (left error) or body frame (right error).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -23,11 +22,24 @@ from mavest.estimator.config import EstimatorConfig
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.recursion import step, turn_heading
 
+# One row of an estimator's output block: what an :class:`Estimate` shows as arrays.
+_ROW_Q = slice(0, 4)
+_ROW_BIAS = slice(4, 7)
+_ROW_EULER = slice(7, 10)
+_ROW_INNOVATION = slice(10, 12)
+_ROW_COV = slice(12, 12 + N_ERROR * N_ERROR)
+_ROW_WIDTH = 12 + N_ERROR * N_ERROR
+# Rows per block: a block is shared by the estimates made from it and freed with
+# the last of them, so it is small (18 KiB) for callers that keep a few estimates.
+_BLOCK_ROWS = 48
+
 
 @kernel
 def _step_scalars(
     state: np.ndarray,
     coefficients: np.ndarray,
+    block: np.ndarray,
+    row: int,
     t: float,
     gx: float,
     gy: float,
@@ -42,7 +54,9 @@ def _step_scalars(
     ly: float,
     lz: float,
 ) -> tuple[float, float, bool, int, int, bool, float, float, bool]:
-    """One step; the sample comes as scalars, which cross into numba far faster than arrays."""
+    """One step; the sample comes as scalars, which cross into numba far faster than
+    arrays. The estimate's arrays go into ``block[row]`` (layout ``_ROW_*``): one
+    row per sample, filled here, costs the caller one view instead of an array each."""
     s = state[0]
     sample = s.w_sample
     sample[0] = gx
@@ -58,6 +72,14 @@ def _step_scalars(
     sample[10] = ly
     sample[11] = lz
     step(s, coefficients[0], t, sample[:3], sample[3:6], sample[6:9], sample[9:])
+    out = block[row]
+    out[0:4] = s.q
+    out[4:7] = s.b
+    so3.euler_zyx_from_quat_into(s.q, out[7:10])
+    out[10:12] = s.innovation
+    for i in range(N_ERROR):
+        for j in range(N_ERROR):
+            out[12 + N_ERROR * i + j] = s.P[i, j]
     return (
         s.t,
         s.nis,
@@ -77,28 +99,31 @@ def _turn_heading(state: np.ndarray, coefficients: np.ndarray, psi: float) -> No
     turn_heading(state[0], coefficients[0], psi)
 
 
-def _compiled_step(state: np.ndarray, coefficients: np.ndarray) -> Callable[..., tuple]:
-    """The compiled step for these record types, without numba's per-call type dispatch
-    (the state and coefficients keep their dtypes for life)."""
-    nan = math.nan
-    return without_dispatch(
-        _step_scalars,
-        state.copy(),
-        coefficients,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        -9.8,
-        nan,
-        nan,
-        nan,
-        nan,
-        nan,
-        nan,
-    )
+_EntryPoints = tuple[Callable[..., tuple], Callable[..., None]]
+_ENTRY_POINTS: dict[tuple[np.dtype, np.dtype], _EntryPoints] = {}
+
+
+def _entry_points(state: np.ndarray, coefficients: np.ndarray) -> _EntryPoints:
+    """The compiled step and heading turn for these record types, without numba's
+    per-call type dispatch (the records keep their dtypes for life).
+
+    Resolved once per process: each takes milliseconds to load from numba's cache
+    and a trial run, which every new estimator (a reset, a new stream) would pay
+    again. Both are loaded with the first estimator, not the turn when a
+    declination first arrives: a live stream would stall for it mid-flight.
+    """
+    key = (state.dtype, coefficients.dtype)
+    found = _ENTRY_POINTS.get(key)
+    if found is None:
+        nan = math.nan
+        step_example = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.8, nan, nan, nan, nan, nan, nan)
+        block = np.empty((1, _ROW_WIDTH))
+        found = (
+            without_dispatch(_step_scalars, state.copy(), coefficients, block, 0, *step_example),
+            without_dispatch(_turn_heading, state.copy(), coefficients, 0.0),
+        )
+        _ENTRY_POINTS[key] = found
+    return found
 
 
 @kernel
@@ -141,36 +166,142 @@ def _run_batch(
         out_mag_used[i] = s.mag_used != 0
 
 
-class Estimate(NamedTuple):
-    """The estimate after one sample, with what the step did.
+class Estimate:
+    """The estimate after one sample, with what the step did (read-only).
 
-    A named tuple rather than a dataclass: the live service makes one per IMU
-    sample, and a frozen dataclass costs several µs to build.
+    The live service makes one per IMU sample, so it is lean: its arrays are
+    views of one row the compiled step filled (``_ROW_*``), its scalars the
+    step's own return tuple; building it costs one view and one small object
+    where four array copies and a 13-field tuple cost several µs.
     """
 
-    t: float
-    q: np.ndarray  # (4,) w, x, y, z; body → NED
-    bias: np.ndarray  # (3,) rad/s
-    cov: np.ndarray  # (6, 6)
-    innovation: np.ndarray  # (2,) gravity residual before the update, rad
-    nis: float  # normalised innovation squared (χ², 2 dof); NaN if no measurement
-    accel_used: bool
-    flags: int  # StepFlags bits
-    iterations: int
-    at_rest: bool  # rest detected: the bias got a zero-rate update
-    heading_innovation: float  # magnetometer azimuth − declination, rad; NaN if none
-    heading_nis: float  # its normalised square (χ², 1 dof)
-    mag_used: bool  # the magnetometer corrected (or set) heading
+    __slots__ = ("_row", "_scalars")
+
+    def __init__(
+        self,
+        row: np.ndarray,
+        scalars: tuple[float, float, bool, int, int, bool, float, float, bool],
+    ) -> None:
+        self._row = row  # (_ROW_WIDTH,), never written again
+        # t, nis, accel_used, flags, iterations, at_rest, heading_innovation,
+        # heading_nis, mag_used: as _step_scalars returns them
+        self._scalars = scalars
+
+    @classmethod
+    def of(
+        cls,
+        t: float,
+        q: ArrayLike,
+        bias: ArrayLike,
+        cov: ArrayLike,
+        innovation: ArrayLike,
+        nis: float,
+        accel_used: bool,
+        flags: int,
+        iterations: int,
+        at_rest: bool,
+        heading_innovation: float,
+        heading_nis: float,
+        mag_used: bool,
+    ) -> Estimate:
+        """An estimate from its fields (e.g. one row of an :class:`EstimateSeries`)."""
+        row = np.empty(_ROW_WIDTH)
+        row[_ROW_Q] = q
+        row[_ROW_BIAS] = bias
+        row[_ROW_EULER] = so3.euler_zyx_from_quat(row[_ROW_Q])
+        row[_ROW_INNOVATION] = innovation
+        row[_ROW_COV] = np.asarray(cov, dtype=np.float64).reshape(-1)
+        scalars = (
+            float(t),
+            float(nis),
+            bool(accel_used),
+            int(flags),
+            int(iterations),
+            bool(at_rest),
+            float(heading_innovation),
+            float(heading_nis),
+            bool(mag_used),
+        )
+        return cls(row, scalars)
+
+    @property
+    def t(self) -> float:
+        """Time of the sample (s)."""
+        return self._scalars[0]
+
+    @property
+    def q(self) -> np.ndarray:
+        """(4,) w, x, y, z; body → NED."""
+        return self._row[_ROW_Q]
+
+    @property
+    def bias(self) -> np.ndarray:
+        """(3,) gyro bias, rad/s."""
+        return self._row[_ROW_BIAS]
+
+    @property
+    def cov(self) -> np.ndarray:
+        """(6, 6) covariance of [δθ, δb]."""
+        return self._row[_ROW_COV].reshape(N_ERROR, N_ERROR)
+
+    @property
+    def innovation(self) -> np.ndarray:
+        """(2,) gravity residual before the update, rad."""
+        return self._row[_ROW_INNOVATION]
+
+    @property
+    def nis(self) -> float:
+        """Normalised innovation squared (χ², 2 dof); NaN if no measurement."""
+        return self._scalars[1]
+
+    @property
+    def accel_used(self) -> bool:
+        return self._scalars[2]
+
+    @property
+    def flags(self) -> int:
+        """:class:`StepFlags` bits."""
+        return self._scalars[3]
+
+    @property
+    def iterations(self) -> int:
+        return self._scalars[4]
+
+    @property
+    def at_rest(self) -> bool:
+        """Rest detected: the bias got a zero-rate update."""
+        return self._scalars[5]
+
+    @property
+    def heading_innovation(self) -> float:
+        """Magnetometer azimuth − declination, rad; NaN if none."""
+        return self._scalars[6]
+
+    @property
+    def heading_nis(self) -> float:
+        """Its normalised square (χ², 1 dof)."""
+        return self._scalars[7]
+
+    @property
+    def mag_used(self) -> bool:
+        """The magnetometer corrected (or set) heading."""
+        return self._scalars[8]
 
     @property
     def euler(self) -> np.ndarray:
         """(roll, pitch, yaw) in rad, ZYX as MAVLink's ATTITUDE."""
-        return so3.euler_zyx_from_quat(self.q)
+        return self._row[_ROW_EULER]
 
     @property
     def status(self) -> list[str]:
         """Names of the flags set, e.g. ``["ACCEL_DISTURBED"]``."""
         return StepFlags.describe(self.flags)
+
+    def __repr__(self) -> str:
+        return (
+            f"Estimate(t={self.t!r}, q={self.q.tolist()!r}, bias={self.bias.tolist()!r},"
+            f" nis={self.nis!r}, status={self.status!r})"
+        )
 
 
 @dataclass(frozen=True)
@@ -195,20 +326,20 @@ class EstimateSeries:
         return self.t.shape[0]
 
     def __getitem__(self, i: int) -> Estimate:
-        return Estimate(
-            float(self.t[i]),
+        return Estimate.of(
+            self.t[i],
             self.q[i],
             self.bias[i],
             self.cov[i],
             self.innovation[i],
-            float(self.nis[i]),
-            bool(self.accel_used[i]),
-            int(self.flags[i]),
-            int(self.iterations[i]),
-            bool(self.at_rest[i]),
-            float(self.heading_innovation[i]),
-            float(self.heading_nis[i]),
-            bool(self.mag_used[i]),
+            self.nis[i],
+            self.accel_used[i],
+            self.flags[i],
+            self.iterations[i],
+            self.at_rest[i],
+            self.heading_innovation[i],
+            self.heading_nis[i],
+            self.mag_used[i],
         )
 
     @property
@@ -227,9 +358,15 @@ def _vector3(value: ArrayLike, name: str) -> np.ndarray:
     return array
 
 
-def _components3(value: ArrayLike, name: str) -> list[float]:
-    """The three components of a vector as Python floats (fast for a (3,) array)."""
-    if type(value) is np.ndarray and value.shape == (3,):
+def _components3(value: ArrayLike, name: str) -> Sequence[float]:
+    """The three components of a vector as Python floats (fast for a (3,) array and for
+    a tuple of three floats, which is what the service's decoded samples carry)."""
+    kind = type(value)
+    if kind is tuple and len(value) == 3:
+        x, y, z = value
+        if type(x) is float and type(y) is float and type(z) is float:
+            return value
+    elif kind is np.ndarray and value.shape == (3,):
         return value.tolist()
     return _vector3(value, name).tolist()
 
@@ -260,16 +397,11 @@ class Estimator:
         self._bind(new_state(self._coefficients))
 
     def _bind(self, state: np.ndarray) -> None:
-        """Adopt a state record, with views of the fields every update reads."""
+        """Adopt a state record, with the compiled entry points and a fresh output block."""
         self._state = state
-        self._step = _compiled_step(state, self._coefficients)
-        # loaded now, with the step, not when a declination first arrives: a live
-        # stream would stall for the load (~15 ms from numba's cache) mid-flight
-        self._turn = without_dispatch(_turn_heading, state.copy(), self._coefficients, 0.0)
-        self._view_q = state["q"][0]
-        self._view_b = state["b"][0]
-        self._view_cov = state["P"][0, :N_ERROR, :N_ERROR]
-        self._view_innovation = state["innovation"][0]
+        self._step, self._turn = _entry_points(state, self._coefficients)
+        self._block = np.empty((_BLOCK_ROWS, _ROW_WIDTH))  # rows the next estimates take
+        self._next_row = 0
 
     def reset(self) -> None:
         """Forget everything; the next usable sample initialises again."""
@@ -407,40 +539,24 @@ class Estimator:
         """
         m = _UNKNOWN3 if mag is None else _components3(mag, "mag")
         a = _UNKNOWN3 if linear_accel is None else _components3(linear_accel, "linear_accel")
-        (
-            t_step,
-            nis,
-            accel_used,
-            flags,
-            iterations,
-            at_rest,
-            heading_innovation,
-            heading_nis,
-            mag_used,
-        ) = self._step(
+        row = self._next_row
+        if row == _BLOCK_ROWS:  # the estimates made from the full block keep it alive
+            self._block = np.empty((_BLOCK_ROWS, _ROW_WIDTH))
+            row = 0
+        self._next_row = row + 1
+        block = self._block
+        scalars = self._step(
             self._state,
             self._coefficients,
+            block,
+            row,
             float(t),
             *_components3(gyro, "gyro"),
             *_components3(accel, "accel"),
             *m,
             *a,
         )
-        return Estimate(
-            t_step,
-            self._view_q.copy(),
-            self._view_b.copy(),
-            self._view_cov.copy(),
-            self._view_innovation.copy(),
-            nis,
-            accel_used,
-            flags,
-            iterations,
-            at_rest,
-            heading_innovation,
-            heading_nis,
-            mag_used,
-        )
+        return Estimate(block[row], scalars)
 
     def update_batch(
         self,

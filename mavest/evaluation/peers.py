@@ -40,6 +40,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from mavest.estimator.config import STANDARD_GRAVITY
 from mavest.evaluation.metrics import quat_multiply
 
 __all__ = [
@@ -55,9 +56,6 @@ __all__ = [
 ]
 
 PeerAdapter = Callable[..., np.ndarray]
-
-#: Standard gravity (m/s²), to convert to the g that Fusion expects.
-_G0 = 9.80665
 
 _SQRT_HALF = float(np.sqrt(0.5))
 #: q(ENU → NED): 180° about (1, 1, 0)/√2; maps (x, y, z)_ENU to (y, x, −z).
@@ -201,7 +199,7 @@ def run_fusion(
     ahrs.set_sample_period(1.0 / rate)
 
     gyro_dps = np.degrees(gyro)
-    accel_g = accel / _G0
+    accel_g = accel / STANDARD_GRAVITY
     steps = np.diff(t, prepend=t[0] - 1.0 / rate)
     uniform = bool(np.allclose(steps, 1.0 / rate, rtol=1e-6, atol=0.0))
     q = np.empty((gyro.shape[0], 4))
