@@ -15,6 +15,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from mavest import EstimatorConfig, estimate, so3
+from mavest.estimator import magnetic
 from mavest.estimator.charts import reset_jacobian_into
 from mavest.estimator.estimator import Estimator
 from mavest.estimator.layout import CHARTS, ERROR_SIDES, RESET_POLICIES
@@ -339,3 +340,22 @@ def test_gyro_bias_converges_to_the_truth_on_a_simulated_flight() -> None:
     initial = np.abs(data.bias_true[0])
     assert np.all(np.abs(error) < 4 * sigma), (np.degrees(error), np.degrees(sigma))
     assert np.all(np.abs(error) < 0.2 * np.maximum(initial, np.radians(0.1)))
+
+
+@pytest.mark.parametrize("error", [0, 1])  # ERROR_LEFT, ERROR_RIGHT
+@pytest.mark.parametrize("declination", [0.0, 0.3, -2.9])
+@pytest.mark.parametrize("dip", [0.0, 1.1, -0.4])
+def test_heading_jacobians_are_the_two_single_jacobians(
+    error: int, declination: float, dip: float
+) -> None:
+    """mag_update's shared-trig pair is, to the bit, heading_jacobian_into at the
+    reference's dip and at zero dip (the heading term alone), which
+    test_magnetometer holds to finite differences."""
+    q = Rotation.from_rotvec([0.3, -0.5, 2.0]).as_quat(scalar_first=True)
+    expected_full, expected_heading = np.empty(3), np.empty(3)
+    magnetic.heading_jacobian_into(q, dip, declination, error, np.empty((3, 3)), expected_full)
+    magnetic.heading_jacobian_into(q, 0.0, declination, error, np.empty((3, 3)), expected_heading)
+    full, heading = np.empty(3), np.empty(3)
+    magnetic.heading_jacobians_into(q, dip, declination, error, np.empty((3, 3)), full, heading)
+    assert full.tobytes() == expected_full.tobytes()
+    assert heading.tobytes() == expected_heading.tobytes()

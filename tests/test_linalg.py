@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mavest.estimator.linalg import gain_update, left_multiply_rows3, right_multiply_cols3
+from mavest.estimator.linalg import (
+    cholesky_into,
+    gain_update,
+    is_positive_definite,
+    left_multiply_rows3,
+    right_multiply_cols3,
+)
 
 
 def _spd(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -54,3 +60,74 @@ def test_block_products_are_the_dense_products() -> None:
     right = P.copy()
     right_multiply_cols3(right, 6, M)
     np.testing.assert_allclose(right, P @ T.T, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("n", [1, 6, 15])
+def test_is_positive_definite_decides_as_cholesky(n: int) -> None:
+    """Definite, semi-definite (a zero row, as ε's before the low-pass is primed),
+    indefinite and NaN matrices: the LDLᵀ pivots' answer is cholesky_into's."""
+    rng = np.random.default_rng(n)
+    definite = _spd(rng, n)
+    semi_definite = _spd(rng, n)
+    semi_definite[n - 1, :] = 0.0
+    semi_definite[:, n - 1] = 0.0
+    indefinite = _spd(rng, n)
+    indefinite[n - 1, n - 1] = -1.0
+    nan = _spd(rng, n)
+    nan[0, 0] = np.nan
+    badly_conditioned = np.diag(np.linspace(1e-12, 1.0, n))
+    cases = [
+        (definite, True),
+        (semi_definite, False),
+        (indefinite, False),
+        (nan, False),
+        (badly_conditioned, True),
+    ]
+    for M, expected in cases:
+        assert is_positive_definite(M, np.full((n, n), np.nan)) == expected
+        assert cholesky_into(M, np.zeros((n, n))) == expected
+
+
+def test_is_positive_definite_factors_the_matrix() -> None:
+    """work holds L D below the diagonal and L above it: L D Lᵀ rebuilds A."""
+    rng = np.random.default_rng(3)
+    n = 15
+    A = _spd(rng, n)
+    work = np.zeros((n, n))
+    assert is_positive_definite(A, work)
+    L = np.triu(work, 1).T + np.eye(n)
+    LD = np.tril(work, -1)
+    pivots = np.array([A[j, j] - LD[j, :j] @ L[j, :j] for j in range(n)])
+    np.testing.assert_allclose(LD, np.tril(L * pivots, -1), rtol=1e-12)
+    np.testing.assert_allclose(
+        L @ np.diag(pivots) @ L.T, A, rtol=1e-12, atol=1e-12 * np.abs(A).max()
+    )
+
+
+def test_the_compiled_cache_is_keyed_on_every_module_that_compiles_kernels() -> None:
+    """numba keys a kernel's cache on its own file only; mavest names the cache after
+    a hash of every module with kernels, found by their import of the decorators. A
+    module that compiles kernels and is not found would keep stale callees."""
+    import importlib
+    import pkgutil
+    from pathlib import Path
+
+    from numba.core.registry import CPUDispatcher
+
+    import mavest
+    from mavest import _jit
+
+    checked = 0
+    for info in pkgutil.walk_packages(mavest.__path__, "mavest."):
+        module = importlib.import_module(info.name)
+        compiled = [
+            name
+            for name, value in vars(module).items()
+            if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__
+        ]
+        if compiled:
+            checked += 1
+            source = Path(module.__file__).read_bytes()
+            assert _jit.compiles_kernels(source), (info.name, compiled)
+    assert checked >= 10
+    assert not _jit.compiles_kernels(b"from mavest._jit import cache_is_warm\n")

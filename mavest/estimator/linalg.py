@@ -10,10 +10,10 @@ import math
 
 import numpy as np
 
-from mavest._jit import kernel
+from mavest._jit import inlined_kernel, kernel
 
 
-@kernel
+@inlined_kernel
 def symmetrise(P: np.ndarray) -> None:
     """P ← (P + Pᵀ)/2, in place."""
     n = P.shape[0]
@@ -47,6 +47,33 @@ def cholesky_into(A: np.ndarray, L: np.ndarray) -> bool:
 
 
 @kernel
+def is_positive_definite(A: np.ndarray, work: np.ndarray) -> bool:
+    """Whether the symmetric A (its lower triangle read) is positive definite.
+
+    The pivots d_j of A = L D Lᵀ are all positive (a NaN fails). They are
+    Cholesky's squared diagonal, so this decides as :func:`cholesky_into` does
+    but for rounding at the edge of definiteness, without its n square roots
+    and with one division per column instead of one per entry. ``work`` (n×n)
+    is scratch: L D below the diagonal, L above it (transposed).
+    """
+    n = A.shape[0]
+    for j in range(n):
+        pivot = A[j, j]
+        for k in range(j):
+            pivot -= work[j, k] * work[k, j]
+        if not pivot > 0.0:  # also catches NaN
+            return False
+        inverse = 1.0 / pivot
+        for i in range(j + 1, n):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= work[i, k] * work[k, j]
+            work[i, j] = acc  # (L D)[i, j]
+            work[j, i] = acc * inverse  # L[i, j]
+    return True
+
+
+@kernel
 def inverse_2x2_into(S: np.ndarray, out: np.ndarray) -> float:
     """out = S⁻¹ for a 2×2 matrix; returns det S (≤ 0 or NaN: not usable)."""
     det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
@@ -76,7 +103,7 @@ def inverse_3x3_into(S: np.ndarray, out: np.ndarray) -> float:
     return det
 
 
-@kernel
+@inlined_kernel
 def left_multiply_rows3(P: np.ndarray, r0: int, M: np.ndarray) -> None:
     """P[r0:r0+3, :] ← M P[r0:r0+3, :] for a 3×3 M, in place.
 
@@ -93,7 +120,7 @@ def left_multiply_rows3(P: np.ndarray, r0: int, M: np.ndarray) -> None:
         P[r0 + 2, j] = m20 * p0 + m21 * p1 + m22 * p2
 
 
-@kernel
+@inlined_kernel
 def right_multiply_cols3(P: np.ndarray, c0: int, M: np.ndarray) -> None:
     """P[:, c0:c0+3] ← P[:, c0:c0+3] Mᵀ for a 3×3 M, in place (as :func:`left_multiply_rows3`)."""
     m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
@@ -106,7 +133,7 @@ def right_multiply_cols3(P: np.ndarray, c0: int, M: np.ndarray) -> None:
         P[i, c0 + 2] = m20 * p0 + m21 * p1 + m22 * p2
 
 
-@kernel
+@inlined_kernel
 def gain_update(P: np.ndarray, K: np.ndarray, C: np.ndarray, S: np.ndarray, m: int) -> None:
     """P ← P − K Cᵀ − C Kᵀ + K S Kᵀ: the covariance after a correction K·r with any gain.
 

@@ -156,3 +156,37 @@ def heading_jacobian_into(
     so3.matrix_from_quat_into(q, R)
     for j in range(3):  # H_world R̄
         H[j] = h0 * R[0, j] + h1 * R[1, j] + h2 * R[2, j]
+
+
+@kernel
+def heading_jacobians_into(
+    q: np.ndarray,
+    dip: float,
+    declination: float,
+    error: int,
+    R: np.ndarray,
+    H: np.ndarray,
+    H_heading: np.ndarray,
+) -> None:
+    """:func:`heading_jacobian_into` at ``dip`` into H and at zero dip (heading's
+    term alone) into H_heading, sharing the declination's trig and R̄.
+
+    Each entry is the same product and sum as the single call's, so both
+    are the same to the bit as two calls.
+    """
+    cos_d = math.cos(declination)
+    sin_d = math.sin(declination)
+    slope = math.tan(dip)
+    h0 = slope * cos_d
+    h1 = slope * sin_d
+    f0 = 0.0 * cos_d  # the single call's slope tan(0) = 0 times the same trig
+    f1 = 0.0 * sin_d
+    h2 = -1.0
+    if error == ERROR_LEFT:
+        H[0], H[1], H[2] = h0, h1, h2
+        H_heading[0], H_heading[1], H_heading[2] = f0, f1, h2
+        return
+    so3.matrix_from_quat_into(q, R)
+    for j in range(3):  # H_world R̄
+        H[j] = h0 * R[0, j] + h1 * R[1, j] + h2 * R[2, j]
+        H_heading[j] = f0 * R[0, j] + f1 * R[1, j] + h2 * R[2, j]

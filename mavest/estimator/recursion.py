@@ -84,6 +84,7 @@ from mavest.estimator.linalg import (
     cholesky_into,
     gain_update,
     inverse_3x3_into,
+    is_positive_definite,
     left_multiply_rows3,
     right_multiply_cols3,
     symmetrise,
@@ -1440,8 +1441,7 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
     # gain made from it grew with the very leak it discounts (module docstring).
     Hf = s.w_v3  # the full H (error frame)
     Hp = s.w_Hm  # its heading part H_ψ (the same at zero dip)
-    magnetic.heading_jacobian_into(s.q, s.mag_ref_dip, c.mag_declination, c.error, s.w_R, Hf)
-    magnetic.heading_jacobian_into(s.q, 0.0, c.mag_declination, c.error, s.w_R, Hp)
+    magnetic.heading_jacobians_into(s.q, s.mag_ref_dip, c.mag_declination, c.error, s.w_R, Hf, Hp)
     n = c.n_state
     P = s.P
     C = s.w_Cm
@@ -1619,7 +1619,7 @@ def step(
     s.linear_accel[:] = linear_accel
     _step_sample(s, c, t, gyro, accel, mag)
     if s.initialised:
-        _check_health(s, c, accel)  # (its Cholesky reads one triangle)
+        _check_health(s, c, accel)  # (its LDLᵀ reads one triangle)
     # the structured products round the two triangles differently
     symmetrise(s.P[: c.n_state, : c.n_state])
 
@@ -1733,7 +1733,7 @@ def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
 @kernel
 def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
     """Nominal finite and a unit quaternion, bias plausible, P positive definite
-    (Cholesky; P is symmetric by construction, symmetrise runs every step) with
+    (LDLᵀ pivots; P is symmetric by construction, symmetrise runs every step) with
     every variance within its bound (NaN fails every test)."""
     q_norm2 = s.q[0] ** 2 + s.q[1] ** 2 + s.q[2] ** 2 + s.q[3] ** 2
     if not abs(q_norm2 - 1.0) < 1e-6:  # also NaN
@@ -1747,10 +1747,10 @@ def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
         if not 0.0 <= s.P[i, i] <= bound:
             return False
     # The estimate's own 6×6 every step; the whole, with the considered states, every
-    # _FULL_CHECK_EVERY samples: its Cholesky would add a fifth to a step. (ε and ḟ
+    # _FULL_CHECK_EVERY samples: its factorisation would add a fifth to a step. (ε and ḟ
     # are exactly zero until the low-pass holds a sample: semi-definite then.)
     m = n if s.filters_primed and s.samples % _FULL_CHECK_EVERY == 0 else N_ERROR
-    return cholesky_into(s.P[:m, :m], s.w_T[:m, :m])
+    return is_positive_definite(s.P[:m, :m], s.w_T[:m, :m])
 
 
 @kernel
