@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from mavest import Estimator
 from mavest.estimator.config import EstimatorConfig
 from mavest.estimator.layout import StepFlags
-from mavest.service.aiding import GpsAcceleration
+from mavest.service.aiding import GpsAcceleration, gps_acceleration_at
 
 G = 9.80665
 RATE = 200.0
@@ -178,3 +178,42 @@ def test_gps_acceleration_needs_a_fix_and_sane_reports() -> None:
     gps.on_velocity(_position(2.0, (60.0, 0.0, 0.0)), 2.0)  # 1.8 s apart: not differenced
     gps.on_fix(3, 2.0)
     assert gps.at(2.0) is None
+
+
+def test_gps_acceleration_for_many_samples_is_at_sample_by_sample() -> None:
+    """The replay's array form against GpsAcceleration.at, each sample with its own state
+    (some before any difference, some stale, some before their fix or acceleration)."""
+    rng = np.random.default_rng(7)
+    n = 2000
+    t = rng.uniform(0.0, 10.0, n)
+    accel_t = t - rng.choice([-0.1, 0.0, 0.2, 0.5, 0.6, 3.0], n)  # some at the limit
+    fix_t = t - rng.choice([-0.5, 0.0, 1.0, 2.0, 2.5], n)
+    accel = rng.normal(0.0, 3.0, (n, 3))
+    accel[rng.random(n) < 0.2] = math.nan  # no difference yet
+    expected = np.full((n, 3), math.nan)
+    for i in range(n):
+        gps = GpsAcceleration(
+            accel=None if math.isnan(accel[i, 0]) else tuple(accel[i].tolist()),  # type: ignore[arg-type]
+            accel_t=float(accel_t[i]),
+            fix_t=float(fix_t[i]),
+        )
+        known = gps.at(float(t[i]))
+        if known is not None:
+            expected[i] = known
+    ours = gps_acceleration_at(accel, accel_t, fix_t, t)
+    np.testing.assert_array_equal(ours, expected)
+    assert 0.2 * n < np.count_nonzero(~np.isnan(expected[:, 0])) < 0.8 * n
+
+
+def test_velocity_reports_by_field_are_velocity_messages() -> None:
+    by_message, by_field = GpsAcceleration(), GpsAcceleration()
+    for k, (t, v) in enumerate(
+        [(0.0, (10.0, 0.0, 0.0)), (0.1, (10.5, -0.2, 0.1)), (0.2, (400.0, 0, 0))]
+    ):
+        message = _position(t, v)
+        by_message.on_velocity(message, 0.1 * k)
+        by_field.on_velocity_report(
+            message.vx, message.vy, message.vz, message.time_boot_ms, 0.1 * k
+        )
+        assert by_field == by_message
+    assert by_field.glitches == 1

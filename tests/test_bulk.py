@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import itertools
 import math
 import os
 import random
@@ -25,7 +26,7 @@ from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
 from mavest.mavlink import bulk
 from mavest.mavlink.clock import WRAP_TICKS, ClockEvent, StreamClock
 from mavest.mavlink.messages import IMU_MESSAGES, MAVLink, decode_imu, mavlink2
-from mavest.mavlink.tlog import TlogReader
+from mavest.mavlink.tlog import TlogReader, TlogWriter
 from mavest.service.config import ServiceConfig
 from mavest.service.runners import Outputs, RunReport, format_summary, replay
 from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
@@ -170,6 +171,69 @@ def test_most_samples_go_through_the_compiled_path(
     assert feeds[0].bulk_samples > 0.9 * 4801
 
 
+def _heartbeat(system: int, component: int, mav_type: int, autopilot: int) -> bytes:
+    mav = MAVLink(None, srcSystem=system, srcComponent=component)
+    return mav.heartbeat_encode(mav_type, autopilot, 0, 0, mavlink2.MAV_STATE_ACTIVE).pack(mav)
+
+
+# HEARTBEATs put into a flight (a fixed wing, system 1) now and then; how many of all
+# the HEARTBEATs then go one at a time (the rest are taken in their place in bulk)
+_HEARTBEATS = {
+    "the vehicle's own again": (
+        (1, 1, mavlink2.MAV_TYPE_FIXED_WING, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA),
+        1,  # the first of the flight: a new vehicle
+    ),
+    "a ground station's": (
+        (255, 190, mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID),
+        1,
+    ),
+    "a second vehicle's": (
+        (2, 1, mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA),
+        2,  # and its first
+    ),
+    "the vehicle's, now a copter": (
+        (1, 1, mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA),
+        None,  # each, and the vehicle's own after it: airspeed aiding goes off and on
+    ),
+}
+
+
+@pytest.mark.parametrize("sender", list(_HEARTBEATS))
+def test_heartbeats_mid_flight_are_the_same_both_ways(
+    sender: str, turning_flights: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from mavest.service import bulk as service_bulk
+
+    header, alone = _HEARTBEATS[sender]
+    packet = _heartbeat(*header)
+    records = []
+    injected = 0
+    for i, record in enumerate(TlogReader.open(turning_flights["ardupilot"], frozenset())):
+        records.append((record.timestamp_us, record.packet))
+        if i % 997 == 500:
+            records.append((record.timestamp_us, packet))
+            injected += 1
+    path = tmp_path / "beats.tlog"
+    path.write_bytes(_tlog_bytes(records))
+    beats_alone = 0
+    original = service_bulk.BulkFeed._alone
+
+    def count(self: service_bulk.BulkFeed, index: bulk.RecordIndex, row: int) -> None:
+        nonlocal beats_alone
+        beats_alone += int(index.message_id[row]) == mavlink2.MAVLINK_MSG_ID_HEARTBEAT
+        original(self, index, row)
+
+    monkeypatch.setattr(service_bulk.BulkFeed, "_alone", count)
+    config = ServiceConfig.from_toml(CONFIGS / "ardupilot.toml")
+    report = _assert_same_both_ways(path, config, tmp_path)
+    assert injected >= 8 and _bulk_samples(report) == 4801
+    if alone is not None:
+        assert beats_alone == alone
+    else:
+        assert beats_alone > 2 * injected
+        assert 0 < report.streams[0].stats.airspeed_aided < 4801
+
+
 def _shared_tlogs() -> list[Path]:
     root = Path(os.environ.get("MAVEST_DATA", Path(__file__).parents[2] / "shared" / "data"))
     return sorted((root / "tlogs").glob("*.tlog"))
@@ -296,6 +360,30 @@ def test_imu_fields_equal_decode_imu(name: str) -> None:
             assert tuple(fields.mag[i]) == sample.mag
         assert fields.instance[i] == sample.stream.instance
         assert fields.saturated[i] == sample.saturated
+
+
+@pytest.mark.parametrize("name", ["GPS_RAW_INT", "GLOBAL_POSITION_INT", "VFR_HUD"])
+def test_aiding_fields_equal_pymavlink(name: str) -> None:
+    """The GPS and airspeed fields the fast path follows, decoded in bulk, against
+    pymavlink's messages of the same packets (MAVLink 1 and 2, trailing zeros cut)."""
+    from mavest.service import bulk as service_bulk
+    from mavest.service.runners import REPLAY_MESSAGES
+
+    packets = _imu_packets(name, 300, seed=len(name))
+    data = b"".join((10**6 + i).to_bytes(8, "big") + p for i, p in enumerate(packets))
+    array = np.frombuffer(data, dtype=np.uint8)
+    index = bulk.scan(array, 0, -1, 1000)
+    assert len(index) == len(packets)
+    decoded = service_bulk._Decoded(array, index, service_bulk.record_kinds(REPLAY_MESSAGES))
+    for i, packet in enumerate(packets):
+        message = MAVLink(None).decode(bytearray(packet))
+        if name == "GPS_RAW_INT":
+            assert decoded.fix_type[i] == message.fix_type
+        elif name == "GLOBAL_POSITION_INT":
+            assert decoded.velocity_cm[i].tolist() == [message.vx, message.vy, message.vz]
+            assert decoded.report_ms[i] == message.time_boot_ms
+        else:
+            assert float(decoded.airspeed[i]) == message.airspeed
 
 
 # ------------------------------------------------------------------ encoding
@@ -495,3 +583,40 @@ def test_a_recording_holds_the_same_both_ways(
         assert np.array_equal(fast[entity][0], t), entity
         assert np.allclose(fast[entity][1], values, rtol=0, atol=1e-9, equal_nan=True), entity
         assert fast[entity][2] == receive, entity
+
+
+@pytest.mark.parametrize("free", [0, 70_000, 150_001, 10**7])
+def test_records_written_in_bulk_end_at_a_whole_record_on_a_full_disk(
+    free: int, flights: dict[str, Flight], tmp_path: Path
+) -> None:
+    """Runs of records at once (from the array, past the writer's buffer) and one at a
+    time, mixed, on a disk that fills up: the file is the start of what was written,
+    cut after a whole record, and the writer counts the records on it."""
+    from test_faults import _SmallDisk  # (a module of heavy imports: only here)
+
+    records = flights["ardupilot"].records * 3
+    data = _tlog_bytes(records)
+    array = np.frombuffer(data, dtype=np.uint8)
+    index = bulk.scan(array, 0, -1, 1 << 20)
+    assert len(index) == len(records)
+    path = tmp_path / "out.tlog"
+    writer = TlogWriter(path)
+    writer._file = _SmallDisk(writer._file, free)  # type: ignore[assignment]
+    position = 0
+    for size in itertools.cycle([1, 3000, 17, 1]):  # small runs, and ones past the buffer
+        if position >= len(records):
+            break
+        part = index.part(slice(position, position + size))
+        if size == 1:
+            writer.write(int(part.stamp[0]), data[int(part.start[0]) + 8 : int(part.end[0])])
+        else:
+            run = array[int(part.start[0]) : int(part.end[-1])]
+            writer.write_records(run, part.end - part.start[0])
+        position += size
+    writer.close()
+    written = path.read_bytes()
+    assert data.startswith(written)
+    ends = [0, *(index.end - index.start[0]).tolist()]
+    assert len(written) in ends and written == data[: ends[writer.records]]
+    assert (writer.error is None) == (free >= len(data))
+    assert len(written) <= free

@@ -15,7 +15,7 @@ import contextlib
 import logging
 import mmap
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -335,34 +335,48 @@ class TlogWriter:
             self._write_pending()
 
     def write_records(self, data: np.ndarray, ends: np.ndarray) -> None:
-        """Whole records at once: ``data`` their bytes, ``ends`` where each ends in it."""
+        """Whole records at once: ``data`` their bytes (uint8), ``ends`` where each ends
+        in it. As many as fill the buffer go to the file straight from ``data``."""
         if self.error is not None or not ends.shape[0]:
             return
-        base = len(self._pending)
-        self._pending += data.tobytes()
-        self._pending_ends.extend((ends + base).tolist())
-        self.records += int(ends.shape[0])
-        if len(self._pending) >= self.BUFFER_BYTES:
+        if len(self._pending) + data.shape[0] < self.BUFFER_BYTES:
+            base = len(self._pending)
+            self._pending += data.tobytes()
+            self._pending_ends.extend((ends + base).tolist())
+            self.records += int(ends.shape[0])
+            return
+        if self._pending:
             self._write_pending()
+            if self.error is not None:
+                return
+        self.records += int(ends.shape[0])
+        with memoryview(np.ascontiguousarray(data)) as view:
+            self._write_out(view, ends)
 
     def _write_pending(self) -> None:
+        with memoryview(self._pending) as data:
+            self._write_out(data, self._pending_ends)
+        if self.error is None:
+            self._pending.clear()
+            self._pending_ends.clear()
+
+    def _write_out(self, data: memoryview, ends: Sequence[int] | np.ndarray) -> None:
+        """Whole records to the file (``ends``: where each ends in ``data``)."""
         done = 0
         try:
-            with memoryview(self._pending) as data:
-                while done < len(data):
-                    done += self._file.write(data[done:]) or 0
+            while done < len(data):
+                done += self._file.write(data[done:]) or 0
         except OSError as error:
-            self._stop(error, done)
+            self._stop(error, done, ends)
             return
         self._on_disk += done
-        self._pending.clear()
-        self._pending_ends.clear()
 
-    def _stop(self, error: OSError, done: int) -> None:
-        """Cut the file back to its last whole record and write no more."""
-        whole = bisect.bisect_right(self._pending_ends, done)
-        self.records -= len(self._pending_ends) - whole
-        keep = self._on_disk + (self._pending_ends[whole - 1] if whole else 0)
+    def _stop(self, error: OSError, done: int, ends: Sequence[int] | np.ndarray) -> None:
+        """Cut the file back to its last whole record (of those being written, which
+        end at ``ends``; ``done`` bytes of them reached the file) and write no more."""
+        whole = bisect.bisect_right(ends, done)
+        self.records -= len(ends) - whole
+        keep = self._on_disk + (int(ends[whole - 1]) if whole else 0)
         with contextlib.suppress(OSError):  # a device (/dev/full) cannot be truncated
             self._file.truncate(keep)
         with contextlib.suppress(OSError):

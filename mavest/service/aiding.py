@@ -51,8 +51,12 @@ class GpsAcceleration:
 
     def on_velocity(self, message: Any, t: float) -> None:
         """A GLOBAL_POSITION_INT arriving at vehicle time t."""
-        velocity = (message.vx * 0.01, message.vy * 0.01, message.vz * 0.01)  # cm/s → m/s
-        report_time = message.time_boot_ms * 1e-3
+        self.on_velocity_report(message.vx, message.vy, message.vz, message.time_boot_ms, t)
+
+    def on_velocity_report(self, vx: int, vy: int, vz: int, time_boot_ms: int, t: float) -> None:
+        """A GLOBAL_POSITION_INT's fields (cm/s, ms: as on the wire) at vehicle time t."""
+        velocity = (vx * 0.01, vy * 0.01, vz * 0.01)  # cm/s → m/s
+        report_time = time_boot_ms * 1e-3
         if not all(abs(v) < _MAX_SPEED for v in velocity):
             self.glitches += 1
             self.velocity = None
@@ -77,22 +81,23 @@ class GpsAcceleration:
             return None
         return self.accel
 
-    def at_many(self, t: np.ndarray) -> np.ndarray:
-        """:meth:`at` for many sample times (the replay's fast path): (n, 3), NaN rows
-        where it is unknown. The same rule, written for arrays."""
-        out = np.full((t.shape[0], 3), math.nan)
-        if self.accel is None:
-            return out
-        since_fix = t - self.fix_t
-        since_accel = t - self.accel_t
-        fresh = (
-            (since_fix >= 0.0)
-            & (since_fix <= GPS_FIX_MAX_AGE)
-            & (since_accel >= 0.0)
-            & (since_accel <= GPS_MAX_AGE)
-        )
-        out[fresh] = self.accel
-        return out
+
+def gps_acceleration_at(
+    accel: np.ndarray, accel_t: np.ndarray, fix_t: np.ndarray, t: np.ndarray
+) -> np.ndarray:
+    """:meth:`GpsAcceleration.at` for many samples, each with the state it meets
+    (the replay's fast path): ``accel`` (n, 3), NaN rows where there is none yet,
+    ``accel_t`` and ``fix_t`` per sample; (n, 3), NaN rows where it is unknown.
+    The same rule, written for arrays."""
+    since_fix = t - fix_t
+    since_accel = t - accel_t
+    fresh = (
+        (since_fix >= 0.0)
+        & (since_fix <= GPS_FIX_MAX_AGE)
+        & (since_accel >= 0.0)
+        & (since_accel <= GPS_MAX_AGE)
+    )
+    return np.where(fresh[:, None], accel, math.nan)
 
 
 def without_centripetal(

@@ -11,18 +11,22 @@ numbers, the output tlog, the Rerun recorder), in compiled loops over arrays:
   stretch of them that the pipeline would take plainly (valid values, the
   clock's plain next sample, no airspeed correction, which needs the bias
   sample by sample) goes through :meth:`Estimator.update_batch`. The GPS and
-  airspeed messages among them are followed on a copy of the vehicle's aiding
-  state to give each sample the inputs the pipeline would give it;
+  airspeed messages among them are decoded in bulk and followed on a copy of the
+  vehicle's aiding state to give each sample the inputs the pipeline would give it;
 * a step after which those inputs may change (heading set or lost, a
   re-initialisation) ends the batch: the samples after it are taken again;
-* SIMSTATE truth goes into the comparison with the estimates, in order; GPS,
-  airspeed and the autopilot's ATTITUDE go through :meth:`Pipeline.on_message`
+* SIMSTATE truth goes into the comparison with the estimates, in order; the
+  vehicle's GPS and airspeed messages change its aiding state, each at the
+  vehicle time where it stands (the same rules, on the fields decoded in bulk);
+  the autopilot's ATTITUDE, others' GPS and airspeed, and a HEARTBEAT that
+  changes nothing the stretch depends on go through :meth:`Pipeline.on_message`
   in their place between the steps;
 * the answers are packed in bulk and written with the input records, each
-  after its IMU record, as the pipeline writes them;
+  after its IMU record, as the pipeline writes them, and our HEARTBEAT after
+  the record where the replay loop would send it;
 * anything else (a sample the clock or the checks single out, a new stream,
-  HEARTBEAT, PARAM_VALUE, …) is one record through :meth:`Pipeline.on_message`,
-  decoded by pymavlink, where it stands.
+  a new vehicle's HEARTBEAT, PARAM_VALUE, …) is one record through
+  :meth:`Pipeline.on_message`, decoded by pymavlink, where it stands.
 
 So the outcome is the pipeline's, byte for byte: ``tests/test_bulk.py``
 replays files both ways (clean and damaged, rebooting, with GPS, airspeed,
@@ -36,7 +40,8 @@ import copy
 import math
 import time
 from collections.abc import Callable
-from typing import Any
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -52,8 +57,9 @@ from mavest.mavlink.messages import (
     time_boot_ms_many,
 )
 from mavest.mavlink.tlog import TlogWriter
-from mavest.service.aiding import AIRSPEED_MAX_AGE
+from mavest.service.aiding import AIRSPEED_MAX_AGE, gps_acceleration_at
 from mavest.service.pipeline import (
+    _FIXED_WING_TYPES,
     _HEADING_EVENTS,
     _HEALTH_EVENTS,
     MAG_WAIT,
@@ -78,12 +84,24 @@ TRUTH = 2  # SIMSTATE
 # fast path follows (a copy of the aiding state decides each sample's inputs).
 INLINE = 3
 OTHER = 4  # decoded and handled one at a time, ending the stretch
+# A vehicle's HEARTBEAT: handled where it stands like INLINE when it changes nothing
+# the stretch depends on (the vehicle is known and stays a fixed wing or not), else
+# it ends the stretch like OTHER.
+BEAT = 5
 
 _INLINE_MESSAGES = ("GLOBAL_POSITION_INT", "GPS_RAW_INT", "VFR_HUD", "ATTITUDE")
 _AIDING_IDS = np.array(
     [getattr(mavlink2, f"MAVLINK_MSG_ID_{name}") for name in _INLINE_MESSAGES[:3]]
 )
 _ATTITUDE = mavlink2.MAVLINK_MSG_ID_ATTITUDE
+_HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
+_GPS_RAW_INT = mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT
+_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
+_VFR_HUD = mavlink2.MAVLINK_MSG_ID_VFR_HUD
+_AIDING_DTYPES = {
+    message_id: bulk.wire_dtype(mavlink2.mavlink_map[message_id])
+    for message_id in _AIDING_IDS.tolist()
+}
 
 _SIMSTATE = mavlink2.MAVLINK_MSG_ID_SIMSTATE
 _IMU_IDS = {getattr(mavlink2, f"MAVLINK_MSG_ID_{name}"): name for name in IMU_MESSAGES}
@@ -91,6 +109,17 @@ _SIMSTATE_DTYPE = bulk.wire_dtype(mavlink2.mavlink_map[_SIMSTATE])
 _IMU_DTYPES = {
     message_id: bulk.wire_dtype(mavlink2.mavlink_map[message_id]) for message_id in _IMU_IDS
 }
+
+# Samples per part of a batch: the filter runs one part on its thread while the
+# replay takes the part before (books, compares, packs and writes it). With sinks
+# (a recording), about a second of the stream's samples: they take the estimates a
+# part at a time, and the recording's disk is checked after each.
+_PART = 2048
+_PART_SECONDS = 1.0
+
+# Samples whose aiding is decided at once: the batch ends at the first that needs the
+# airspeed correction, and the samples decided past it are decided again.
+_AIDING_WINDOW = 1024
 
 # A step with one of these may change whether heading is referenced (and so whether
 # GPS aiding applies to the next sample): a batch is cut after it.
@@ -117,6 +146,8 @@ def record_kinds(wanted: frozenset[int]) -> np.ndarray:
         message_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}")
         if message_id in wanted:
             kinds[message_id] = INLINE
+    if _HEARTBEAT in wanted:
+        kinds[_HEARTBEAT] = BEAT
     for message_id in _IMU_IDS:
         kinds[message_id] = IMU
     if _SIMSTATE in wanted:
@@ -169,6 +200,25 @@ class _Decoded:
         if rows.shape[0]:
             payloads = bulk.decode_payloads(data, records.part(rows), _SIMSTATE_DTYPE)
             self.truth[rows] = bulk.simstate_euler(payloads)
+        # the fields of GPS and airspeed messages that the aiding state takes, as on
+        # the wire (pymavlink's numbers: ints, and float32 widened exactly)
+        self.fix_type = np.zeros(n, dtype=np.int64)  # GPS_RAW_INT
+        self.velocity_cm = np.zeros((n, 3), dtype=np.int64)  # GLOBAL_POSITION_INT vx, vy, vz
+        self.report_ms = np.zeros(n, dtype=np.int64)  # GLOBAL_POSITION_INT time_boot_ms
+        self.airspeed = np.zeros(n)  # VFR_HUD
+        for message_id, dtype in _AIDING_DTYPES.items():
+            rows = np.flatnonzero(records.message_id == message_id)
+            if not rows.shape[0] or kinds[message_id] != INLINE:
+                continue
+            payloads = bulk.decode_payloads(data, records.part(rows), dtype)
+            if message_id == _GPS_RAW_INT:
+                self.fix_type[rows] = payloads["fix_type"]
+            elif message_id == _GLOBAL_POSITION_INT:
+                for axis, name in enumerate(("vx", "vy", "vz")):
+                    self.velocity_cm[rows, axis] = payloads[name]
+                self.report_ms[rows] = payloads["time_boot_ms"]
+            else:
+                self.airspeed[rows] = payloads["airspeed"]
 
 
 # What the pipeline does with an IMU record, by its stream.
@@ -222,22 +272,51 @@ class BulkFeed:
         self.pipeline = pipeline
         self.data = data
         self.tlog = tlog
-        # called after each stretch taken in bulk, as the replay loop calls its checks
-        # (the recording's disk space) every few hundred records
+        # called after each stretch taken in bulk (and each second of it, where our
+        # HEARTBEATs go out), as the replay loop calls its checks (the recording's disk
+        # space) every few hundred records
         self.after_stretch = after_stretch
         self.kinds = record_kinds(wanted)  # per message id: PASSIVE … OTHER
         self._mav = MAVLink(None)  # decodes the records handled one at a time
         self.bulk_samples = 0  # IMU samples estimated in bulk (for the tests)
         self._decoded: dict[int, Any] = {}  # row → message, within one feed
+        # mavest's HEARTBEAT, sent after the first record at or past the time it is due,
+        # then due a period after that record (µs of record time; period 0: never)
+        self._beat_period_us = 0
+        self._next_beat_us = 0
+        self._executor: ThreadPoolExecutor | None = None  # the filter's thread
 
-    def feed(self, records: bulk.RecordIndex) -> None:
-        """Handle these records (clean, in file order) as the replay loop would."""
+    def feed(
+        self, records: bulk.RecordIndex, beat_period_us: int = 0, next_beat_us: int = 0
+    ) -> int:
+        """Handle these records (clean, in file order) as the replay loop would, with
+        a HEARTBEAT of ours after a record once one is due (as the loop sends them).
+        Returns when the next one is due."""
+        self._beat_period_us = beat_period_us
+        self._next_beat_us = next_beat_us
         decoded = _Decoded(self.data, records, self.kinds)
         self._decoded.clear()
         cuts = np.flatnonzero(decoded.kind == OTHER)
         start = 0
         while start < len(records):
             start = self._run(records, decoded, cuts, start)
+        return self._next_beat_us
+
+    def _beats(self, stamps: np.ndarray) -> list[int]:
+        """Of records with these times (handled in bulk, in order), those after which a
+        HEARTBEAT of ours goes out; moves the next one's due time past them."""
+        if not self._beat_period_us or not self.pipeline.vehicles:
+            return []  # (a vehicle comes only with a record handled alone)
+        beats: list[int] = []
+        position = 0
+        while True:
+            due = np.flatnonzero(stamps[position:] >= self._next_beat_us)
+            if not due.shape[0]:
+                return beats
+            position += int(due[0])
+            beats.append(position)
+            self._next_beat_us = int(stamps[position]) + self._beat_period_us
+            position += 1
 
     # ---------------------------------------------------------------- one run
 
@@ -254,6 +333,7 @@ class BulkFeed:
         if alone.shape[0]:
             end = int(alone[0])
         end = self._truth_end(records, decoded, start, end, stream)
+        end = self._beats_end(records, decoded, start, end)
         if end == start:
             self._alone(records, start)
             return start + 1
@@ -280,7 +360,9 @@ class BulkFeed:
         )
         fresh = decoded.inertial_fresh[rows]
         stream: Stream | None = None
-        for value in np.unique(code).tolist():
+        # (nearly always one stream: no need to sort them all to find that out)
+        values = [int(code[0])] if (code == code[0]).all() else np.unique(code).tolist()
+        for value in values:
             key = StreamKey(
                 (value >> 40) & 0xFF,
                 (value >> 32) & 0xFF,
@@ -325,6 +407,25 @@ class BulkFeed:
             return int(truth_rows[np.argmax(foreign)])
         return end
 
+    def _beats_end(self, records: bulk.RecordIndex, decoded: _Decoded, start: int, end: int) -> int:
+        """``end``, or the first HEARTBEAT before it that changes what the pipeline knows
+        of a vehicle (a new one, or its fixed wing), which the stretch depends on."""
+        pipeline = self.pipeline
+        for row in (start + np.flatnonzero(decoded.kind[start:end] == BEAT)).tolist():
+            message = self._decode(records, row)
+            header = message._header
+            system, component = header.srcSystem, header.srcComponent
+            if (
+                pipeline._is_ours(system, component)
+                or system in pipeline.config.input.ignore_systems
+                or message.autopilot == mavlink2.MAV_AUTOPILOT_INVALID
+            ):
+                continue  # Pipeline.on_message leaves it there
+            vehicle = pipeline.vehicles.get((system, component))
+            if vehicle is None or vehicle.fixed_wing != (message.type in _FIXED_WING_TYPES):
+                return row
+        return end
+
     def _packet(self, records: bulk.RecordIndex, row: int) -> bytes:
         return self.data[int(records.start[row]) + 8 : int(records.end[row])].tobytes()
 
@@ -341,11 +442,14 @@ class BulkFeed:
         return message
 
     def _alone(self, records: bulk.RecordIndex, row: int) -> None:
-        """One record the way the replay loop takes it: written, decoded, handled."""
+        """One record the way the replay loop takes it: written, decoded, handled, and
+        a HEARTBEAT of ours after it if one is due."""
         stamp = int(records.stamp[row])
         if self.tlog is not None:
             self.tlog.write(stamp, self._packet(records, row))
         self.pipeline.on_message(self._decode(records, row), stamp)
+        if self._beats(records.stamp[row : row + 1]):
+            self.pipeline.heartbeat()
 
     # ---------------------------------------------------------------- estimation
 
@@ -375,6 +479,7 @@ class BulkFeed:
         t = stream.clock.read_run(ticks, tick)
         linear_accel, needs_airspeed = self._aiding(records, decoded, start, stream, rows, t)
         count = int(np.argmax(needs_airspeed)) if needs_airspeed.any() else t.shape[0]
+        # (the answers end at the first sample that needs airspeed, if one does)
         if count == 0:  # records before the sample in bulk, the sample alone
             first = int(rows[0])
             self._take(records, decoded, start, first, stream)
@@ -387,18 +492,63 @@ class BulkFeed:
             & (np.abs(mag) <= MAX_MAG).all(axis=1)
         )
         mag[~usable_mag] = math.nan
-        series, count = self._update(
-            stream, t[:count], gyro[:count], accel[:count], mag, linear_accel[:count]
-        )
-        stream.clock.take_run(ticks, tick, count)
-        self.bulk_samples += count
-        stop = int(rows[count]) if count < rows.shape[0] else end
-        processing = (time.perf_counter() - began) / count
-        steps = _Steps(
-            rows[:count], series, usable_mag[:count], gyro[:count], accel[:count], processing
-        )
-        self._take(records, decoded, start, stop, stream, steps)
+        # The batch in parts, each run on the filter's thread while this one takes the
+        # part before (the compiled filter does not hold the interpreter). Exact: the
+        # parts run in order, as consecutive batches would, on inputs all decided
+        # already; meanwhile this thread touches the clock and what it takes, never
+        # the estimator.
+        plain_count = count
+        inputs = (t[:count], gyro[:count], accel[:count], mag, linear_accel[:count])
+        worker = self._worker()
+        size = _PART
+        if self.pipeline.sinks:
+            size = min(size, max(64, round(_PART_SECONDS * stream.rate)))
+        part = worker.submit(self._update, stream, *_part(inputs, 0, size, plain_count))
+        done = 0  # samples estimated
+        taken = start  # records taken
+        while True:
+            series, count, cut = part.result()
+            first, done = done, done + count
+            ended = cut or done == plain_count
+            if not ended:
+                inputs_after = _part(inputs, done, size, plain_count)
+                part = worker.submit(self._update, stream, *inputs_after)
+            stream.clock.take_run(ticks[first:], tick, count)
+            self.bulk_samples += count
+            stop = int(rows[done]) if done < rows.shape[0] else end
+            now = time.perf_counter()
+            processing, began = (now - began) / count, now
+            steps = _Steps(
+                rows[first:done],
+                series,
+                usable_mag[first:done],
+                gyro[first:done],
+                accel[first:done],
+                processing,
+            )
+            self._take(records, decoded, taken, stop, stream, steps)
+            taken = stop
+            if ended:
+                break
+        count = done
+        if count == plain_count and count < rows.shape[0]:
+            # the sample after the batch is not plain (or needs airspeed): it goes
+            # alone now, as the next run would send it (without looking ahead again)
+            self._alone(records, stop)
+            return stop + 1
         return stop
+
+    def _worker(self) -> ThreadPoolExecutor:
+        """The thread the filter runs on (one: the parts of a batch run in order)."""
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(1, thread_name_prefix="mavest-filter")
+        return self._executor
+
+    def close(self) -> None:
+        """End the filter's thread (the feed takes nothing more)."""
+        if self._executor is not None:
+            self._executor.shutdown()
+            self._executor = None
 
     def _update(
         self,
@@ -408,21 +558,27 @@ class BulkFeed:
         accel: np.ndarray,
         mag: np.ndarray,
         linear_accel: np.ndarray,
-    ) -> tuple[Any, int]:
-        """Run the estimator over the samples, up to and including the first whose step
-        may change what the next sample's inputs are (whether GPS aiding applies)."""
+        last: bool,
+    ) -> tuple[Any, int, bool]:
+        """Run the estimator over the samples (the ``last`` part of a batch, or not), up
+        to and including the first whose step may change what the next sample's inputs
+        are (whether GPS aiding applies): (the estimates, how many, whether the batch
+        ends there)."""
         estimator = stream.estimator
         before = estimator._state.copy()
         series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
-        events = np.flatnonzero(series.flags[:-1] & _REGIME_EVENTS)
+        # (after the batch's last step the next inputs are decided anew anyway)
+        events = np.flatnonzero(series.flags[: -1 if last else None] & _REGIME_EVENTS)
         if not events.shape[0]:
-            return series, t.shape[0]
+            return series, t.shape[0], False
         count = int(events[0]) + 1  # the steps after it took inputs decided too early
+        if count == t.shape[0]:
+            return series, count, True
         estimator._state[...] = before
         series = estimator.update_batch(
             t[:count], gyro[:count], accel[:count], mag[:count], linear_accel[:count]
         )
-        return series, count
+        return series, count, True
 
     def _aiding(
         self,
@@ -435,55 +591,50 @@ class BulkFeed:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Per sample, the known acceleration (NaN rows: none) and whether the airspeed
         correction applies, as the pipeline would decide them: GPS and airspeed
-        messages among the samples are followed on a copy of the vehicle's state."""
+        messages among the samples are followed on a copy of the vehicle's state,
+        each at the time of the sample before it.
+
+        Decided a window of samples at a time, up to the window with the first sample
+        that needs the airspeed correction (the batch ends before it: what comes after
+        is decided again, from the state the pipeline then has); so the answers may be
+        shorter than ``t``."""
         pipeline = self.pipeline
         vehicle = pipeline.vehicles[(stream.key.system, stream.key.component)]
         n = t.shape[0]
-        linear_accel = np.full((n, 3), math.nan)
-        needs_airspeed = np.zeros(n, dtype=bool)
+        rows = rows[:n]
         end = int(rows[n - 1]) if n else start
-        inline = start + np.flatnonzero(decoded.kind[start:end] == INLINE)
-        mine = (
-            (records.system[inline] == vehicle.system)
-            & (records.component[inline] == vehicle.component)
-            & np.isin(records.message_id[inline], _AIDING_IDS)
-        )
+        messages = _aiding_rows(records, decoded, start, end, vehicle)
+        message_ids = records.message_id[messages]
+        before = np.searchsorted(rows, messages)  # samples before each message
+        times: list[float | None] = [
+            float(t[upto - 1]) if upto else vehicle.last_t for upto in before.tolist()
+        ]
         state = copy.copy(vehicle)
         state.gps = copy.copy(vehicle.gps)
-        done = 0
-        for row in inline[mine].tolist():
-            upto = int(np.searchsorted(rows[:n], row))
-            self._decide_aiding(stream, state, t, done, upto, linear_accel, needs_airspeed)
-            done = upto
-            last_t = float(t[upto - 1]) if upto else vehicle.last_t
-            if last_t is not None:
-                _follow(state, self._decode(records, row), last_t)
-        self._decide_aiding(stream, state, t, done, n, linear_accel, needs_airspeed)
+        gps_aiding = pipeline._gps_aiding(stream)
+        airspeed_aiding = pipeline._airspeed_aiding(vehicle)
+        linear_accel = np.full((n, 3), math.nan)
+        needs_airspeed = np.zeros(n, dtype=bool)
+        decided = 0  # samples
+        followed = 0  # messages
+        while decided < n:
+            window = slice(decided, min(n, decided + _AIDING_WINDOW))
+            upto = int(np.searchsorted(messages, rows[window.stop - 1]))  # messages before
+            part = slice(followed, upto)
+            history = _follow_many(state, decoded, message_ids[part], messages[part], times[part])
+            met = np.searchsorted(messages[part], rows[window])  # the state each sample meets
+            if gps_aiding:
+                linear_accel[window] = gps_acceleration_at(
+                    history.accel[met], history.accel_t[met], history.fix_t[met], t[window]
+                )
+            if airspeed_aiding:
+                since = t[window] - history.airspeed_t[met]
+                unknown = np.isnan(linear_accel[window, 0])
+                needs_airspeed[window] = unknown & (since >= 0.0) & (since <= AIRSPEED_MAX_AGE)
+                if needs_airspeed[window].any():
+                    return linear_accel[: window.stop], needs_airspeed[: window.stop]
+            decided, followed = window.stop, upto
         return linear_accel, needs_airspeed
-
-    def _decide_aiding(
-        self,
-        stream: Stream,
-        vehicle: Vehicle,
-        t: np.ndarray,
-        start: int,
-        stop: int,
-        linear_accel: np.ndarray,
-        needs_airspeed: np.ndarray,
-    ) -> None:
-        """Samples [start, stop): the pipeline's ``_gps_acceleration`` and
-        ``_uses_airspeed`` with this vehicle state."""
-        if stop <= start:
-            return
-        times = t[start:stop]
-        pipeline = self.pipeline
-        if pipeline._gps_aiding(stream):
-            linear_accel[start:stop] = vehicle.gps.at_many(times)
-        if not pipeline._airspeed_aiding(vehicle):
-            return
-        since = times - vehicle.airspeed_t
-        unknown = np.isnan(linear_accel[start:stop, 0])
-        needs_airspeed[start:stop] = unknown & (since >= 0.0) & (since <= AIRSPEED_MAX_AGE)
 
     # ---------------------------------------------------------------- the outcome
 
@@ -499,12 +650,14 @@ class BulkFeed:
         """Records [start, stop) as the pipeline takes them, in order: the steps booked
         and compared with the truth between them, each GPS, airspeed or autopilot
         attitude message handled where it stands; then the answers packed and all of
-        it written to the output tlog."""
+        it written to the output tlog, with our HEARTBEATs where they fall due."""
         if stop <= start:
             return
         pipeline = self.pipeline
+        record_us_before = pipeline._record_us
         kind = decoded.kind[start:stop]
-        inline = start + np.flatnonzero(kind == INLINE)
+        # (every HEARTBEAT here is one that changes nothing the stretch depends on)
+        inline = start + np.flatnonzero((kind == INLINE) | (kind == BEAT))
         # The steps are booked and compared up to each autopilot ATTITUDE, which is
         # compared with them; a GPS or airspeed message needs only the vehicle's time.
         splits = inline[records.message_id[inline] == _ATTITUDE]
@@ -518,6 +671,19 @@ class BulkFeed:
             if steps is not None
             else np.empty(0, dtype=np.int64)
         )
+        if vehicle is not None:
+            # the vehicle's own GPS and airspeed messages change only its aiding state:
+            # followed in bulk, each at the vehicle's time where it stands
+            followed = _aiding_rows(records, decoded, start, stop, vehicle)
+            if followed.shape[0]:
+                inline = np.setdiff1d(inline, followed, assume_unique=True)
+                times: list[float | None] = [vehicle.last_t] * followed.shape[0]
+                if steps is not None and estimated_at.shape[0]:
+                    before = np.searchsorted(estimated_at, np.searchsorted(steps.rows, followed))
+                    at = steps.t[estimated_at[np.maximum(before - 1, 0)]].tolist()
+                    times = [at[k] if b else vehicle.last_t for k, b in enumerate(before.tolist())]
+                _follow_many(vehicle, decoded, records.message_id[followed], followed, times)
+                pipeline.messages_in += followed.shape[0]
         taken = start
         estimated: list[np.ndarray] = []
         done = 0  # steps booked
@@ -542,28 +708,70 @@ class BulkFeed:
                     vehicle.last_t = float(steps.t[estimated_at[before]])
             pipeline.on_message(self._decode(records, row), int(records.stamp[row]))
         pipeline.messages_in += int((kind == IMU).sum() + (kind == TRUTH).sum())
-        # the time packets sent now are recorded at: the last decoded message's
-        decoded_rows = np.flatnonzero(kind != PASSIVE)
-        if decoded_rows.shape[0]:
-            pipeline._record_us = int(records.stamp[start + decoded_rows[-1]])
-        answer_of = np.full(stop - start, -1, dtype=np.int64)
-        answers: tuple[bulk.Packets, bulk.Packets | None] | None = None
+        answered = np.empty(0, dtype=np.int64)  # indices of the steps answered
         if stream is not None and steps is not None and stream.primary and estimated:
             kept = np.concatenate(estimated)
             answered = kept[self._answered(stream, steps.t[kept])]
-            if answered.shape[0]:
-                answers = self._answers(stream, steps, answered)
-                answer_of[steps.rows[answered] - start] = np.arange(answered.shape[0])
-        if self.tlog is not None:
-            if answers is None:
-                empty = bulk.Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
-                answers = (empty, None)
-            data, ends = bulk.interleave(
-                self.data, records.part(slice(start, stop)), answer_of, *answers
+        answered_rows = steps.rows[answered] if steps is not None else answered
+        # Written in pieces, each up to a record after which a HEARTBEAT of ours goes
+        # out: its packets take the encoder's sequence numbers between the answers.
+        # Packets sent are recorded at the time of the last decoded message before them.
+        decoded_rows = start + np.flatnonzero(kind != PASSIVE)
+        beats = [start + beat + 1 for beat in self._beats(records.stamp[start:stop])]
+        piece_start = start
+        for piece_end in beats if beats and beats[-1] == stop else [*beats, stop]:
+            first, last = np.searchsorted(answered_rows, (piece_start, piece_end))
+            if stream is not None and steps is not None:
+                self._write(records, piece_start, piece_end, stream, steps, answered[first:last])
+            elif self.tlog is not None:
+                self._write_records(records, piece_start, piece_end)
+            last_decoded = int(np.searchsorted(decoded_rows, piece_end)) - 1
+            pipeline._record_us = (
+                int(records.stamp[decoded_rows[last_decoded]])
+                if last_decoded >= 0
+                else record_us_before
             )
-            self.tlog.write_records(data, ends)
-        if self.after_stretch is not None:
-            self.after_stretch()
+            if piece_end in beats:
+                pipeline.heartbeat()
+            piece_start = piece_end
+            if self.after_stretch is not None:
+                self.after_stretch()
+
+    def _write(
+        self,
+        records: bulk.RecordIndex,
+        start: int,
+        stop: int,
+        stream: Stream,
+        steps: _Steps,
+        answered: np.ndarray,
+    ) -> None:
+        """Records [start, stop) to the output tlog, each answered step's (``answered``:
+        their indices, in order) followed by its answers, packed now (the encoder's
+        sequence numbers go on)."""
+        if not answered.shape[0]:
+            if self.tlog is not None:
+                self._write_records(records, start, stop)
+            return
+        answers = self._answers(stream, steps, answered)
+        if self.tlog is None:
+            return
+        answer_of = np.full(stop - start, -1, dtype=np.int64)
+        answer_of[steps.rows[answered] - start] = np.arange(answered.shape[0])
+        data, ends = bulk.interleave(
+            self.data, records.part(slice(start, stop)), answer_of, *answers
+        )
+        self.tlog.write_records(data, ends)
+
+    def _write_records(self, records: bulk.RecordIndex, start: int, stop: int) -> None:
+        """Records [start, stop) to the output tlog as they are (nothing answered)."""
+        assert self.tlog is not None
+        empty = bulk.Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
+        answer_of = np.full(stop - start, -1, dtype=np.int64)
+        data, ends = bulk.interleave(
+            self.data, records.part(slice(start, stop)), answer_of, empty, None
+        )
+        self.tlog.write_records(data, ends)
 
     def _book_and_compare(
         self,
@@ -747,19 +955,75 @@ class BulkFeed:
         return packets
 
 
-def _follow(vehicle: Vehicle, message: Any, last_t: float) -> None:
-    """What Pipeline.on_message does to a vehicle's aiding state with this GPS or
-    airspeed message (others leave it), at vehicle time ``last_t``."""
-    name = message._type
-    if name == "VFR_HUD":
-        airspeed = float(message.airspeed)
-        if 0.0 <= airspeed < 400.0:
-            vehicle.airspeed = airspeed
-            vehicle.airspeed_t = last_t
-    elif name == "GPS_RAW_INT":
-        vehicle.gps.on_fix(message.fix_type, last_t)
-    elif name == "GLOBAL_POSITION_INT":
-        vehicle.gps.on_velocity(message, last_t)
+def _part(inputs: tuple[np.ndarray, ...], start: int, size: int, count: int) -> tuple[Any, ...]:
+    """The filter's inputs for the part of a batch of ``count`` samples from ``start``
+    (at most ``size``), and whether it is the batch's last part."""
+    stop = min(start + size, count)
+    return (*(values[start:stop] for values in inputs), stop == count)
+
+
+def _aiding_rows(
+    records: bulk.RecordIndex, decoded: _Decoded, start: int, stop: int, vehicle: Vehicle
+) -> np.ndarray:
+    """Rows [start, stop) of this vehicle's GPS and airspeed messages (decoded in bulk)."""
+    inline = start + np.flatnonzero(decoded.kind[start:stop] == INLINE)
+    mine = (
+        (records.system[inline] == vehicle.system)
+        & (records.component[inline] == vehicle.component)
+        & (records.message_id[inline] != _ATTITUDE)  # the other INLINE messages: aiding
+    )
+    return inline[mine]
+
+
+class _AidingHistory(NamedTuple):
+    """A vehicle's aiding state before its GPS and airspeed messages (row 0) and after
+    each of them (row k + 1: after the k-th), as the samples meet it."""
+
+    accel: np.ndarray  # (m + 1, 3) m/s² NED; NaN rows: none yet
+    accel_t: np.ndarray  # (m + 1,)
+    fix_t: np.ndarray
+    airspeed_t: np.ndarray
+
+
+def _follow_many(
+    vehicle: Vehicle,
+    decoded: _Decoded,
+    message_ids: np.ndarray,
+    rows: np.ndarray,
+    times: list[float | None],
+) -> _AidingHistory:
+    """What Pipeline.on_message does to a vehicle's aiding state with these GPS and
+    airspeed messages (rows of ``decoded``, in order), each at its vehicle time (None:
+    no time yet, so it is not taken); the state after each."""
+    gps = vehicle.gps
+    fix_type = decoded.fix_type[rows].tolist()
+    velocity = decoded.velocity_cm[rows].tolist()
+    report_ms = decoded.report_ms[rows].tolist()
+    airspeed = decoded.airspeed[rows].tolist()
+    m = rows.shape[0]
+    accel = np.full((m + 1, 3), math.nan)
+    accel_t = np.empty(m + 1)
+    fix_t = np.empty(m + 1)
+    airspeed_t = np.empty(m + 1)
+    if gps.accel is not None:
+        accel[0] = gps.accel
+    accel_t[0], fix_t[0], airspeed_t[0] = gps.accel_t, gps.fix_t, vehicle.airspeed_t
+    for k, message_id in enumerate(message_ids.tolist()):
+        t = times[k]
+        if t is not None:
+            if message_id == _VFR_HUD:
+                if 0.0 <= airspeed[k] < 400.0:  # as Pipeline.on_message (NaN fails)
+                    vehicle.airspeed = airspeed[k]
+                    vehicle.airspeed_t = t
+            elif message_id == _GPS_RAW_INT:
+                gps.on_fix(fix_type[k], t)
+            else:
+                vx, vy, vz = velocity[k]
+                gps.on_velocity_report(vx, vy, vz, report_ms[k], t)
+        if gps.accel is not None:
+            accel[k + 1] = gps.accel
+        accel_t[k + 1], fix_t[k + 1], airspeed_t[k + 1] = gps.accel_t, gps.fix_t, vehicle.airspeed_t
+    return _AidingHistory(accel, accel_t, fix_t, airspeed_t)
 
 
 def _times_of_references(times: np.ndarray, kinds: np.ndarray, before: float | None) -> np.ndarray:
