@@ -74,14 +74,18 @@ def log_into(h: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
     wy = h[2] * z[0] - h[0] * z[2]
     wz = h[0] * z[1] - h[1] * z[0]
     s = math.sqrt(wx * wx + wy * wy + wz * wz)
-    if s < _TINY_NORM:
-        # near h = −z the cross product can be so small (1e-162) that its squares
-        # are denormal and the direction w/s is lost: hypot scales them first
-        s = math.hypot(math.hypot(wx, wy), wz)
     c = h[0] * z[0] + h[1] * z[1] + h[2] * z[2]
-    if s > 0.0:
+    if s >= _TINY_NORM:
         k = math.atan2(s, c) / s
         out[0], out[1], out[2] = k * wx, k * wy, k * wz
+        return
+    # Near h = ±z the cross product can be so small (1e-162) that its squares are
+    # denormal and the direction w/s is lost: hypot scales them first. It can be
+    # denormal itself (1e-313), and then θ/s overflows: the direction comes first.
+    s = math.hypot(math.hypot(wx, wy), wz)
+    if s > 0.0:
+        theta = math.atan2(s, c)
+        out[0], out[1], out[2] = theta * (wx / s), theta * (wy / s), theta * (wz / s)
     elif c > 0.0:
         out[0], out[1], out[2] = 0.0, 0.0, 0.0
     else:

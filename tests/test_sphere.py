@@ -50,13 +50,17 @@ def test_angle_is_an_arc_cosine_not_a_dot_product() -> None:
     assert np.linalg.norm(sphere.log(u, v)) == pytest.approx(np.pi / 3, abs=1e-15)
 
 
-def test_nearly_antipodal_directions_keep_their_axis() -> None:
-    # found by Hypothesis: the cross product's squares are denormal here
+@pytest.mark.parametrize("tiny", [6.09295507e-162, 2.22507386e-313, 5e-324])
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_nearly_parallel_directions_keep_their_axis(tiny: float, sign: float) -> None:
+    # found by Hypothesis near h = −z: the cross product's squares are denormal
+    # (1e-162), or it is denormal itself (1e-313, where θ/s overflowed to inf)
     h = np.array([0.0, 0.0, 1.0])
-    z = np.array([0.0, 6.09295507e-162, -1.0])
+    z = np.array([0.0, tiny, sign])
     rho = sphere.log(h, z)
     np.testing.assert_allclose(so3.exp(rho) @ h, z, atol=1e-12)
-    assert np.linalg.norm(rho) == pytest.approx(np.pi, abs=1e-12)
+    assert np.linalg.norm(rho) == pytest.approx(np.pi if sign < 0 else 0.0, abs=1e-12)
+    assert rho[1] == 0.0 and rho[2] == 0.0  # about x, the axis h × z points along
 
 
 def test_antipodal_directions_give_a_half_turn() -> None:
