@@ -167,12 +167,13 @@ def _run_batch(
 
 
 class Estimate:
-    """The estimate after one sample, with what the step did (read-only).
+    """The estimate after one sample, with what the step did.
 
     The live service makes one per IMU sample, so it is lean: its arrays are
     views of one row the compiled step filled (``_ROW_*``), its scalars the
     step's own return tuple; building it costs one view and one small object
-    where four array copies and a 13-field tuple cost several µs.
+    where four array copies and a 13-field tuple cost several µs. No later step
+    writes that row, so an estimate kept stays as it was made.
     """
 
     __slots__ = ("_row", "_scalars")
