@@ -348,9 +348,9 @@ def test_gyro_bias_converges_to_the_truth_on_a_simulated_flight() -> None:
 def test_heading_jacobians_are_the_two_single_jacobians(
     error: int, declination: float, dip: float
 ) -> None:
-    """mag_update's shared-trig pair is, to the bit, heading_jacobian_into at the
-    reference's dip and at zero dip (the heading term alone), which
-    test_magnetometer holds to finite differences."""
+    """mag_update's pair is, to the bit, the full Jacobian at the reference's dip and
+    at zero dip (the heading term alone), which test_magnetometer holds to finite
+    differences."""
     q = Rotation.from_rotvec([0.3, -0.5, 2.0]).as_quat(scalar_first=True)
     expected_full, expected_heading = np.empty(3), np.empty(3)
     magnetic.heading_jacobian_into(q, dip, declination, error, np.empty((3, 3)), expected_full)

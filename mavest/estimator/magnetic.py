@@ -137,28 +137,6 @@ def field_geometry(q: np.ndarray, m: np.ndarray, u: np.ndarray) -> tuple[float, 
 
 
 @kernel
-def heading_jacobian_into(
-    q: np.ndarray, dip: float, declination: float, error: int, R: np.ndarray, H: np.ndarray
-) -> None:
-    """H (3) of the azimuth with respect to the attitude error; R (3×3) is scratch.
-
-    Evaluated at the reference field (azimuth = declination, and the dip
-    given: mag_update passes the reference's), the linearisation point the
-    filter believes in.
-    """
-    slope = math.tan(dip)
-    h0 = slope * math.cos(declination)
-    h1 = slope * math.sin(declination)
-    h2 = -1.0
-    if error == ERROR_LEFT:
-        H[0], H[1], H[2] = h0, h1, h2
-        return
-    so3.matrix_from_quat_into(q, R)
-    for j in range(3):  # H_world R̄
-        H[j] = h0 * R[0, j] + h1 * R[1, j] + h2 * R[2, j]
-
-
-@kernel
 def heading_jacobians_into(
     q: np.ndarray,
     dip: float,
@@ -168,18 +146,20 @@ def heading_jacobians_into(
     H: np.ndarray,
     H_heading: np.ndarray,
 ) -> None:
-    """:func:`heading_jacobian_into` at ``dip`` into H and at zero dip (heading's
-    term alone) into H_heading, sharing the declination's trig and R̄.
+    """H (3) of the azimuth with respect to the attitude error at ``dip``, and into
+    H_heading the same at zero dip (heading's term alone), sharing the
+    declination's trig and R̄; R (3×3) is scratch.
 
-    Each entry is the same product and sum as the single call's, so both
-    are the same to the bit as two calls.
+    Evaluated at the reference field (azimuth = declination, and the dip
+    given: mag_update passes the reference's), the linearisation point the
+    filter believes in.
     """
     cos_d = math.cos(declination)
     sin_d = math.sin(declination)
     slope = math.tan(dip)
     h0 = slope * cos_d
     h1 = slope * sin_d
-    f0 = 0.0 * cos_d  # the single call's slope tan(0) = 0 times the same trig
+    f0 = 0.0 * cos_d  # tan(0) = 0 times the same trig, as H at zero dip is formed
     f1 = 0.0 * sin_d
     h2 = -1.0
     if error == ERROR_LEFT:
@@ -190,3 +170,11 @@ def heading_jacobians_into(
     for j in range(3):  # H_world R̄
         H[j] = h0 * R[0, j] + h1 * R[1, j] + h2 * R[2, j]
         H_heading[j] = f0 * R[0, j] + f1 * R[1, j] + h2 * R[2, j]
+
+
+@kernel
+def heading_jacobian_into(
+    q: np.ndarray, dip: float, declination: float, error: int, R: np.ndarray, H: np.ndarray
+) -> None:
+    """H alone (:func:`heading_jacobians_into`, its heading term discarded)."""
+    heading_jacobians_into(q, dip, declination, error, R, H, np.empty(3))
