@@ -415,10 +415,8 @@ class BulkFeed:
             message = self._decode(records, row)
             header = message._header
             system, component = header.srcSystem, header.srcComponent
-            if (
-                pipeline._is_ours(system, component)
-                or system in pipeline.config.input.ignore_systems
-                or message.autopilot == mavlink2.MAV_AUTOPILOT_INVALID
+            if pipeline._is_ours(system, component) or not pipeline._is_vehicles_heartbeat(
+                system, message
             ):
                 continue  # Pipeline.on_message leaves it there
             vehicle = pipeline.vehicles.get((system, component))
@@ -1012,9 +1010,7 @@ def _follow_many(
         t = times[k]
         if t is not None:
             if message_id == _VFR_HUD:
-                if 0.0 <= airspeed[k] < 400.0:  # as Pipeline.on_message (NaN fails)
-                    vehicle.airspeed = airspeed[k]
-                    vehicle.airspeed_t = t
+                vehicle.on_airspeed(airspeed[k], t)
             elif message_id == _GPS_RAW_INT:
                 gps.on_fix(fix_type[k], t)
             else:

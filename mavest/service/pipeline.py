@@ -152,6 +152,13 @@ class Vehicle:
     gps: GpsAcceleration = field(default_factory=GpsAcceleration)
     declination: float | None = None  # rad, the vehicle's COMPASS_DEC (PARAM_VALUE)
 
+    def on_airspeed(self, airspeed: float, t: float) -> None:
+        """A VFR_HUD airspeed (m/s) arriving at vehicle time t; an implausible one
+        (negative, ≥ 400 m/s, NaN) is not taken."""
+        if 0.0 <= airspeed < 400.0:  # (NaN fails the range test)
+            self.airspeed = airspeed
+            self.airspeed_t = t
+
 
 class Pipeline:
     """Decode, estimate, answer. Feed it bytes (:meth:`on_bytes`) or messages."""
@@ -267,10 +274,8 @@ class Pipeline:
             self._on_declination(system, component, float(message.param_value))
         elif name == "VFR_HUD":
             vehicle = self.vehicles.get((system, component))
-            airspeed = float(message.airspeed)
-            if vehicle is not None and vehicle.last_t is not None and 0.0 <= airspeed < 400.0:
-                vehicle.airspeed = airspeed  # (NaN fails the range test)
-                vehicle.airspeed_t = vehicle.last_t
+            if vehicle is not None and vehicle.last_t is not None:
+                vehicle.on_airspeed(float(message.airspeed), vehicle.last_t)
         elif name == "GLOBAL_POSITION_INT" or name == "GPS_RAW_INT":
             vehicle = self.vehicles.get((system, component))
             if vehicle is not None and vehicle.last_t is not None:
@@ -279,9 +284,7 @@ class Pipeline:
                 else:
                     vehicle.gps.on_velocity(message, vehicle.last_t)
         elif name == "HEARTBEAT":
-            if system in self.config.input.ignore_systems:
-                return
-            if message.autopilot != mavlink2.MAV_AUTOPILOT_INVALID:
+            if self._is_vehicles_heartbeat(system, message):
                 vehicle = self._vehicle(system, component)
                 vehicle.autopilot = message.autopilot
                 vehicle.fixed_wing = message.type in _FIXED_WING_TYPES
@@ -293,6 +296,14 @@ class Pipeline:
                 component,
                 result.name if result is not None else message.result,
             )
+
+    def _is_vehicles_heartbeat(self, system: int, message: Any) -> bool:
+        """Whether a HEARTBEAT not of ours speaks for a vehicle (its autopilot a real
+        one, its system not ignored): it tells the vehicle's type."""
+        return (
+            system not in self.config.input.ignore_systems
+            and message.autopilot != mavlink2.MAV_AUTOPILOT_INVALID
+        )
 
     def _is_ours(self, system: int, component: int) -> bool:
         output = self.config.output
