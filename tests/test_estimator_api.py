@@ -198,8 +198,18 @@ def test_bad_samples_are_skipped_and_said_so() -> None:
 def test_every_step_reports_innovation_nis_and_use() -> None:
     data = simulate(30.0, 100.0, seed=4)
     out = estimate(data.t, data.gyro, data.accel)
-    used = out.accel_used & (out.flags & StepFlags.INITIALISED == 0)
-    assert used.mean() > 0.8
+    # at 100 Hz with updates at 50 Hz (the default update_rate) every other sample
+    # is an update; the others are predicted only, and say so
+    between = out.flags & StepFlags.BETWEEN_UPDATES != 0
+    assert between.mean() == pytest.approx(0.5, abs=0.01)
+    # nothing is measured between updates, and what the last update measured is shown
+    assert not np.any(out.accel_used[between])
+    last_update = np.maximum.accumulate(np.where(between, 0, np.arange(len(between))))
+    for field in (out.nis, out.innovation):
+        np.testing.assert_array_equal(field[between], field[last_update[between]])
+    updates = ~between & (out.flags & StepFlags.INITIALISED == 0)
+    used = out.accel_used & updates
+    assert used.sum() > 0.8 * updates.sum()
     assert np.all(np.isfinite(out.innovation[used])) and np.all(np.isfinite(out.nis[used]))
     assert np.all(out.nis[used] >= 0.0)
     assert out[5].status == StepFlags.describe(int(out.flags[5]))

@@ -105,7 +105,9 @@ def test_the_health_check_finds_each_kind_of_broken_state(corrupt) -> None:
 
 
 # A negative or an absurd variance written between two steps is overwritten by the next
-# update before the check sees it; these four survive a step, as an accident would.
+# update before the check sees it; these four survive a step, as an accident would. P's
+# definiteness is checked at the updates (between them P is only predicted, which keeps
+# it definite), the rest at every sample.
 @pytest.mark.parametrize(
     "corrupt", [_corrupt_nan, _corrupt_indefinite, _corrupt_bias, _corrupt_quaternion]
 )
@@ -114,8 +116,15 @@ def test_a_broken_state_is_re_initialised_at_the_next_step_and_said_so(corrupt) 
     corrupt(estimator._state)
     tilted = Rotation.from_euler("x", 20.0, degrees=True)
     accel = tilted.inv().apply([0.0, 0.0, -G])  # the vehicle now rests at 20° roll
-    out = estimator.update(2.005, [0.0, 0.0, 0.0], accel)
+    t = 2.0
+    for _ in range(4):  # the updates are at 50 Hz: one of these four samples is one
+        t += 0.005
+        out = estimator.update(t, [0.0, 0.0, 0.0], accel)
+        if out.flags & StepFlags.UNHEALTHY_RESET or corrupt is not _corrupt_indefinite:
+            break
+        assert out.flags & StepFlags.BETWEEN_UPDATES, out.status
     assert out.flags & StepFlags.UNHEALTHY_RESET, out.status
+    assert not out.flags & StepFlags.BETWEEN_UPDATES or corrupt is not _corrupt_indefinite
     assert estimator.unhealthy_resets == 1 and estimator.divergence_resets == 0
     assert np.all(np.isfinite(out.q)) and np.all(np.isfinite(out.cov))
     np.testing.assert_array_equal(out.cov, out.cov.T)

@@ -71,6 +71,13 @@ class StepFlags:
     # calm again after a clipped gyro: attitude re-aligned from the accelerometer
     # (heading kept, or set again by the magnetometer)
     CLIP_REALIGNED = 2097152
+    # no gravity or zero-rate update at this sample: the last was less than the
+    # update interval ago (EstimatorConfig.update_rate); the sample was predicted
+    # and its accelerometer taken into the low-pass
+    BETWEEN_UPDATES = 4194304
+    # this sample's magnetometer reading was not used: the last one taken was less
+    # than the update interval ago
+    MAG_BETWEEN_UPDATES = 8388608
 
     SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING
 
@@ -115,6 +122,7 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("accel_lowpass_time", np.float64),
         ("accel_lowpass_damping", np.float64),
         ("lowpass_restart_angle", np.float64),
+        ("update_interval", np.float64),  # s between measurement updates (0: every sample)
         ("velocity_var", np.float64),
         ("velocity_time", np.float64),
         ("aided_velocity_var", np.float64),
@@ -164,9 +172,19 @@ STATE_DTYPE = np.dtype(
         # low-passed specific force f̄ and its rate ḟ, estimated world frame
         ("accel_world_lp", np.float64, (2, 3)),
         ("lowpass_time", np.float64),  # time averaged since the low-pass started, s
+        # the low-pass's Φ₀₀, Φ₀₁, Φ₁₀, Φ₁₁, Γ₀, Γ₁ and the velocity's γ for the Δt below
+        ("lowpass_step", np.float64, 7),
+        ("lowpass_step_dt", np.float64),
         ("rest_gyro_lp", np.float64, 3),  # low-passed gyro and accel of the rest detector
         ("rest_accel_lp", np.float64, 3),
         ("rest_time", np.float64),  # how long the rest criteria have held, s
+        # the gyro samples since the last update while the rest criteria held
+        # (their mean is what the zero-rate update measures), and their time
+        ("rest_gyro_sum", np.float64, 3),
+        ("rest_samples", np.int64),
+        ("rest_sum_time", np.float64),
+        ("t_update", np.float64),  # time of the last update sample (gravity, zero rate)
+        ("health_checks", np.int64),
         ("filters_primed", np.int64),  # the three low-passes hold a sample
         # the magnetometer: 0 heading free (6-D), 1 heading set and the reference
         # field being learned, 2 reference set
@@ -275,6 +293,9 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["accel_lowpass_time"] = config.accel_lowpass_time
     c["accel_lowpass_damping"] = config.accel_lowpass_damping
     c["lowpass_restart_angle"] = config.accel_lowpass_restart_angle
+    c["update_interval"] = (
+        1.0 / config.update_rate if config.update_rate > 0.0 and n > N_ERROR else 0.0
+    )
     c["velocity_var"] = config.velocity_sigma**2
     c["velocity_time"] = config.velocity_time
     c["aided_velocity_var"] = config.aided_velocity_sigma**2
@@ -322,6 +343,8 @@ def new_state(coefficients: np.ndarray) -> np.ndarray:
         s["P"][0, velocity, velocity] = c["velocity_var"] * np.eye(3)
     s["t"] = -np.inf
     s["t_accel"] = -np.inf
+    s["t_update"] = -np.inf
+    s["lowpass_step_dt"] = np.nan
     s["nis"] = np.nan
     s["heading_innovation"] = np.nan
     s["heading_nis"] = np.nan

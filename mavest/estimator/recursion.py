@@ -124,6 +124,8 @@ _HEADING_REOPENED = StepFlags.HEADING_REOPENED
 _ACCEL_AIDED = StepFlags.ACCEL_AIDED
 _UNHEALTHY_RESET = StepFlags.UNHEALTHY_RESET
 _DIVERGED = StepFlags.DIVERGED
+_BETWEEN_UPDATES = StepFlags.BETWEEN_UPDATES
+_MAG_BETWEEN_UPDATES = StepFlags.MAG_BETWEEN_UPDATES
 
 
 # --------------------------------------------------------------------------
@@ -371,6 +373,7 @@ def _prime_filters(
     s.rest_gyro_lp[:] = gyro
     s.rest_accel_lp[:] = accel
     s.rest_time = 0.0
+    _restart_rest_mean(s)
     s.filters_primed = 1
     n = c.n_state
     if n == N_ERROR:
@@ -1023,17 +1026,22 @@ def _absorb_sample(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt:
         for i in range(3):
             s.w_v3[i] -= s.linear_accel[i]
     lp = s.accel_world_lp
+    step = s.lowpass_step
+    if dt != s.lowpass_step_dt:  # else the last sample's (a steady rate: most samples)
+        step[0], step[1], step[2], step[3], step[4], step[5] = _lowpass_step(c, dt)
+        step[6] = math.exp(-dt / c.velocity_time)
+        s.lowpass_step_dt = dt
     if s.lowpass_time < c.accel_lowpass_time:
         beta = s.lowpass_time / (s.lowpass_time + dt)
         p00, p01, p10, p11, g0, g1 = beta, 0.0, 0.0, 1.0, 1.0 - beta, 0.0
         s.lowpass_time += dt
     else:
-        p00, p01, p10, p11, g0, g1 = _lowpass_step(c, dt)
+        p00, p01, p10, p11, g0, g1 = step[0], step[1], step[2], step[3], step[4], step[5]
     for i in range(3):
         y, rate = lp[0, i], lp[1, i]
         lp[0, i] = p00 * y + p01 * rate + g0 * s.w_v3[i]
         lp[1, i] = p10 * y + p11 * rate + g1 * s.w_v3[i]
-    gamma = math.exp(-dt / c.velocity_time)
+    gamma = step[6]
     cv = (gamma - 1.0) / dt
     a02, a12 = g0 * cv, g1 * cv
     var_eta = c.accel_var_density / dt
@@ -1136,22 +1144,32 @@ _LINEAR_LIMIT = 0.2
 
 
 @kernel
-def accel_update(
-    s: StateRecord, c: CoefficientsRecord, t: float, accel: np.ndarray, dt: float
-) -> None:
-    """Gravity-direction update with the robustness checks; sets the step's diagnostics."""
+def _take_accel(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float) -> bool:
+    """The accelerometer sample into the low-pass (when there is one); False if not finite."""
     if not _vector_is_finite(accel):
         s.flags |= _ACCEL_INVALID
-        return
-    lowpass = c.accel_lowpass_time > 0.0
-    aided = _vector_is_finite(s.linear_accel)
-    if aided:
+        return False
+    if _vector_is_finite(s.linear_accel):
         s.flags |= _ACCEL_AIDED
-    if lowpass:
+    if c.accel_lowpass_time > 0.0:
         if s.filters_primed == 2:  # primed with this very sample
             s.filters_primed = 1
         else:
             _absorb_sample(s, c, accel, dt)
+    return True
+
+
+@kernel
+def accel_update(
+    s: StateRecord, c: CoefficientsRecord, t: float, accel: np.ndarray, dt: float
+) -> None:
+    """The sample into the low-pass, then the gravity-direction update with the
+    robustness checks; sets the step's diagnostics."""
+    if not _take_accel(s, c, accel, dt):
+        return
+    lowpass = c.accel_lowpass_time > 0.0
+    aided = _vector_is_finite(s.linear_accel)
+    if lowpass:
         so3.quat_conjugate_into(s.q, s.w_q4)
         so3.quat_rotate_into(s.w_q4, s.accel_world_lp[0], s.w_u3)  # R̄ᵀ f̄
     else:
@@ -1399,6 +1417,10 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
     """
     if not _vector_is_finite(mag):
         return  # no magnetometer in this sample
+    if s.mag_state != 0 and t - s.t_mag < c.update_interval - 0.5 * dt:
+        s.flags |= _MAG_BETWEEN_UPDATES  # (its own schedule: the field may come at its own rate)
+        return
+    _clear_heading_report(s)
     m = s.w_mag
     magnetic.calibrate_into(mag, c.mag_offsets, c.mag_soft_iron, m)
     azimuth, dip, norm = magnetic.field_geometry(s.q, m, s.w_u3)
@@ -1523,9 +1545,14 @@ _ZERO_RATE_GATE = 16.27
 def _detect_rest(
     s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, accel: np.ndarray, dt: float
 ) -> bool:
-    """VQF's rest criteria: gyro and accel stay near their low-passes for rest_min_time."""
+    """VQF's rest criteria: gyro and accel stay near their low-passes for rest_min_time.
+
+    The gyro samples since the last update are summed while the criteria hold,
+    for the zero-rate update to measure their mean.
+    """
     if not (c.rest_detection and _vector_is_finite(accel)):
         s.rest_time = 0.0
+        _restart_rest_mean(s)
         return False
     alpha = 1.0 - math.exp(-dt / c.rest_filter_time)
     dev_g = 0.0
@@ -1539,15 +1566,32 @@ def _detect_rest(
         dev_g < c.rest_gyro_threshold * c.rest_gyro_threshold
         and dev_a < c.rest_accel_threshold * c.rest_accel_threshold
     )
-    s.rest_time = s.rest_time + dt if still else 0.0
+    if still:
+        s.rest_time += dt
+        for i in range(3):
+            s.rest_gyro_sum[i] += gyro[i]
+        s.rest_samples += 1
+        s.rest_sum_time += dt
+    else:
+        s.rest_time = 0.0
+        _restart_rest_mean(s)
     return s.rest_time >= c.rest_min_time
 
 
 @kernel
-def _zero_rate_update(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float) -> None:
-    """At rest the gyro measures its bias: y = ω_m − b̄, H = [0 I 0], V = σ_g²/Δt + σ_rest²."""
+def _restart_rest_mean(s: StateRecord) -> None:
+    for i in range(3):
+        s.rest_gyro_sum[i] = 0.0
+    s.rest_samples = 0
+    s.rest_sum_time = 0.0
+
+
+@kernel
+def _zero_rate_update(s: StateRecord, c: CoefficientsRecord) -> None:
+    """At rest the gyro measures its bias: y = ω̄_m − b̄, H = [0 I 0], V = σ_g²/T + σ_rest²,
+    ω̄_m the mean of the samples since the last update (over T), all at rest."""
     n = c.n_state
-    var = c.gyro_var_density / dt + c.rest_rate_var
+    var = c.gyro_var_density / s.rest_sum_time + c.rest_rate_var
     P = s.P
     S = s.w_S3
     for i in range(3):
@@ -1558,7 +1602,7 @@ def _zero_rate_update(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, d
         return
     y = s.w_v3
     for i in range(3):
-        y[i] = gyro[i] - s.b[i]
+        y[i] = s.rest_gyro_sum[i] / s.rest_samples - s.b[i]
     nis = 0.0
     for i in range(3):
         for j in range(3):
@@ -1620,8 +1664,24 @@ def step(
     _step_sample(s, c, t, gyro, accel, mag)
     if s.initialised:
         _check_health(s, c, accel)  # (its LDLᵀ reads one triangle)
-    # the structured products round the two triangles differently
-    symmetrise(s.P[: c.n_state, : c.n_state])
+    # The structured products round the two triangles differently: the whole P is
+    # made symmetric at the updates, the estimate's own 6×6 at every sample.
+    symmetrise(
+        s.P[:N_ERROR, :N_ERROR] if s.flags & _BETWEEN_UPDATES else s.P[: c.n_state, : c.n_state]
+    )
+
+
+@kernel
+def _clear_gravity_report(s: StateRecord) -> None:
+    s.nis = math.nan
+    s.innovation[0] = math.nan
+    s.innovation[1] = math.nan
+
+
+@kernel
+def _clear_heading_report(s: StateRecord) -> None:
+    s.heading_innovation = math.nan
+    s.heading_nis = math.nan
 
 
 @kernel
@@ -1638,12 +1698,9 @@ def _step_sample(
     s.mag_used = 0
     s.iterations = 0
     s.at_rest = 0
-    s.nis = math.nan
-    s.innovation[0] = math.nan
-    s.innovation[1] = math.nan
-    s.heading_innovation = math.nan
-    s.heading_nis = math.nan
     if not s.initialised:
+        _clear_gravity_report(s)
+        _clear_heading_report(s)
         if math.isfinite(t) and _vector_is_finite(gyro) and _accel_usable_for_alignment(c, accel):
             _align(s, c, accel, False, False)
             s.initialised = 1
@@ -1657,14 +1714,15 @@ def _step_sample(
             s.flags = _NOT_INITIALISED
         return
     dt = t - s.t
-    if not dt > 0.0:  # also NaN
-        s.flags = _TIME_NOT_INCREASING
-        return
-    if not _vector_is_finite(gyro):
-        s.flags = _GYRO_INVALID
+    if not dt > 0.0 or not _vector_is_finite(gyro):  # (also NaN)
+        s.flags = _TIME_NOT_INCREASING if not dt > 0.0 else _GYRO_INVALID
+        _clear_gravity_report(s)
+        _clear_heading_report(s)
         return
     s.samples += 1
     if dt > c.max_dt:
+        _clear_gravity_report(s)
+        _clear_heading_report(s)
         # Nothing is known of the motion in the gap: re-align tilt from this
         # sample's accelerometer, keep heading and bias (which drift slowly).
         if _accel_usable_for_alignment(c, accel):
@@ -1693,10 +1751,24 @@ def _step_sample(
         _prime_filters(s, c, gyro, accel, dt)
         s.filters_primed = 2  # tells accel_update the low-pass already holds this sample
     if s.clip_calm_time >= 0.0:  # nothing corrects an attitude that is not known
+        _clear_gravity_report(s)
+        _clear_heading_report(s)
         _realign_when_calm(s, c, t, gyro, accel, dt)
         return
-    if _detect_rest(s, c, gyro, accel, dt):
-        _zero_rate_update(s, c, gyro, dt)
+    at_rest = _detect_rest(s, c, gyro, accel, dt)
+    if t - s.t_update < c.update_interval - 0.5 * dt:
+        # not due: the sample is predicted (above) and its accelerometer averaged
+        # into the low-pass, whose error the covariance carries to the next update;
+        # what the last update measured is still reported
+        s.flags |= _BETWEEN_UPDATES
+        _take_accel(s, c, accel, dt)
+        mag_update(s, c, t, mag, dt)
+        return
+    s.t_update = t
+    _clear_gravity_report(s)
+    if at_rest:
+        _zero_rate_update(s, c)
+    _restart_rest_mean(s)
     accel_update(s, c, t, accel, dt)
     mag_update(s, c, t, mag, dt)
 
@@ -1712,7 +1784,7 @@ _MAX_CONSIDERED_VAR = 1e6  # (m/s²)², (m/s³)², (m/s)²: ε, ḟ, v
 # Heading's σ never exceeds 180°: a wrapped normal that wide is as good as uniform,
 # and the linear model of a wider one means nothing (6-D, hours without a compass).
 _MAX_HEADING_VAR = math.pi**2
-_FULL_CHECK_EVERY = 64  # samples
+_FULL_CHECK_EVERY = 64  # checks
 
 
 @kernel
@@ -1731,10 +1803,9 @@ def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
 
 
 @kernel
-def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
-    """Nominal finite and a unit quaternion, bias plausible, P positive definite
-    (LDLᵀ pivots; P is symmetric by construction, symmetrise runs every step) with
-    every variance within its bound (NaN fails every test)."""
+def _state_is_plausible(s: StateRecord, c: CoefficientsRecord) -> bool:
+    """Nominal finite and a unit quaternion, bias plausible, every variance within its
+    bound (NaN fails every test): what a sample between updates is checked for."""
     q_norm2 = s.q[0] ** 2 + s.q[1] ** 2 + s.q[2] ** 2 + s.q[3] ** 2
     if not abs(q_norm2 - 1.0) < 1e-6:  # also NaN
         return False
@@ -1746,10 +1817,21 @@ def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
         bound = _MAX_ATTITUDE_VAR if i < 3 else _MAX_BIAS**2 if i < N_ERROR else _MAX_CONSIDERED_VAR
         if not 0.0 <= s.P[i, i] <= bound:
             return False
-    # The estimate's own 6×6 every step; the whole, with the considered states, every
-    # _FULL_CHECK_EVERY samples: its factorisation would add a fifth to a step. (ε and ḟ
+    return True
+
+
+@kernel
+def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
+    """:func:`_state_is_plausible`, and P positive definite (LDLᵀ pivots; P is
+    symmetric by construction, symmetrise runs at every update)."""
+    if not _state_is_plausible(s, c):
+        return False
+    n = c.n_state
+    # The estimate's own 6×6 at every check; the whole, with the considered states, every
+    # _FULL_CHECK_EVERY checks: its factorisation would add a fifth to a step. (ε and ḟ
     # are exactly zero until the low-pass holds a sample: semi-definite then.)
-    m = n if s.filters_primed and s.samples % _FULL_CHECK_EVERY == 0 else N_ERROR
+    s.health_checks += 1
+    m = n if s.filters_primed and s.health_checks % _FULL_CHECK_EVERY == 0 else N_ERROR
     return is_positive_definite(s.P[:m, :m], s.w_T[:m, :m])
 
 
@@ -1780,13 +1862,22 @@ def _reinitialise(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> N
 
 @kernel
 def _check_health(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> None:
-    """After every step: re-initialise a diverged or numerically broken filter."""
+    """After every step: re-initialise a diverged or numerically broken filter.
+
+    P's definiteness is checked at the update samples: between them P is only
+    predicted, by congruences with noise added, which keep it definite (a NaN
+    spreads to a variance, which every sample's check catches).
+    """
     if s.flags & _DIVERGED:
         _reinitialise(s, c, accel)
         s.divergence_resets += 1
         return
     _cap_heading_variance(s, c)
-    if not _state_is_healthy(s, c):
+    if s.flags & _BETWEEN_UPDATES:
+        healthy = _state_is_plausible(s, c)
+    else:
+        healthy = _state_is_healthy(s, c)
+    if not healthy:
         _reinitialise(s, c, accel)
         s.flags |= _UNHEALTHY_RESET
         s.unhealthy_resets += 1

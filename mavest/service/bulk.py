@@ -250,7 +250,8 @@ class _Steps:
         self.bias = series.bias
         self.flags = series.flags
         self.mag_used = series.mag_used & usable_mag
-        self.usable_mag = usable_mag
+        # the usable readings the filter took (as Pipeline.on_message counts them)
+        self.taken_mag = usable_mag & (series.flags & StepFlags.MAG_BETWEEN_UPDATES == 0)
         self.gyro = gyro  # for the answers' rates
 
     def before(self, row: int) -> slice:
@@ -872,7 +873,7 @@ class BulkFeed:
         if stats.first_t is None:
             stats.first_t = float(t[kept[0]])
         stats.last_t = float(t[kept[-1]])
-        stats.mag_samples += int(np.count_nonzero(steps.usable_mag[first:last][kept]))
+        stats.mag_samples += int(np.count_nonzero(steps.taken_mag[first:last][kept]))
         stats.mag_used += int(np.count_nonzero(steps.mag_used[first:last][kept]))
         vehicle.last_t = stats.last_t
         return kept

@@ -100,7 +100,9 @@ class StreamStats:
     clip_realigned: int = 0  # calm again after a clipped gyro: tilt re-aligned
     reboots: int = 0
     wraps: int = 0
-    mag_samples: int = 0  # samples that carried a usable magnetometer reading
+    # samples that carried a usable magnetometer reading the filter took (the rest came
+    # within the update interval of the last one taken: EstimatorConfig.update_rate)
+    mag_samples: int = 0
     mag_used: int = 0  # of those, the ones that corrected (or set) heading
     gps_aided: int = 0  # samples with the vehicle's acceleration from GPS removed
     airspeed_aided: int = 0  # samples with the centripetal term from airspeed removed
@@ -487,7 +489,7 @@ class Pipeline:
         if stats.first_t is None:
             stats.first_t = t
         stats.last_t = t
-        if mag is not None:
+        if mag is not None and not flags & StepFlags.MAG_BETWEEN_UPDATES:
             stats.mag_samples += 1
             stats.mag_used += estimate.mag_used
         if flags & _HEADING_EVENTS or not stream.heading_source_reported:

@@ -556,8 +556,8 @@ def format_summary(report: RunReport) -> str:
         if stats.mag_samples:
             used = 100.0 * stats.mag_used / stats.mag_samples
             lines.append(
-                f"    heading from the magnetometer (9-D): {used:.1f} % of "
-                f"{stats.mag_samples} readings used"
+                f"    heading from the magnetometer (9-D): {used:.1f} % used of the "
+                f"{stats.mag_samples} readings taken"
             )
         else:
             lines.append("    no magnetometer: heading free (6-D), yaw drifts")

@@ -13,9 +13,10 @@ Per IMU stream (root ``vehicle_<sys>_<comp>/<message>_<instance>``):
 - ``imu/gyro`` (°/s), ``imu/accel`` (m/s²): what came in, x, y, z;
 - ``innovation`` (°, x, y) and ``nis/value`` with ``nis/chi2_band`` (χ², 2 dof,
   the central 90 % band): one sample per ``slow_rate`` slot (each still a
-  single update's, so the band stays right); ``accel`` (the fraction of the
-  slot's samples whose accelerometer was used, and disturbed), so that not one
-  rejection is hidden by the thinning;
+  single update's, so the band stays right; between the filter's updates a sample
+  shows the last update's); ``accel`` (the fraction of the slot's update samples
+  whose accelerometer was used, and disturbed, for the slots that hold one), so
+  that not one rejection is hidden by the thinning;
 - ``timing/processing_us``: decode to estimate, per sample;
 - ``world/<root>/{mavest,autopilot,truth}``: the vehicle body in 3-D (NED),
   side by side, posed at up to ``pose_rate`` Hz.
@@ -557,12 +558,15 @@ class RerunRecorder:
         used = data[:, _USED]
         flags = data[:, _FLAGS].astype(np.int64)
         disturbed = ((flags & StepFlags.ACCEL_DISTURBED) != 0).astype(float)
-        # fractions per slot; the first slot may have begun in the previous batch
-        counts = np.diff(np.append(slow, len(data)))
-        fractions = np.column_stack(
-            [np.add.reduceat(used, slow) / counts, np.add.reduceat(disturbed, slow) / counts]
-        )
-        self._send(f"{root}/accel", slow_index, fractions)
+        updates = ((flags & StepFlags.BETWEEN_UPDATES) == 0).astype(float)
+        # fractions of each slot's update samples (the others measure nothing), for the
+        # slots that hold one; the first slot may have begun in the previous batch
+        counts = np.add.reduceat(updates, slow)
+        holds = counts > 0
+        shares = np.column_stack([np.add.reduceat(used, slow), np.add.reduceat(disturbed, slow)])
+        fractions = shares[holds] / counts[holds, None]
+        if np.any(holds):
+            self._send(f"{root}/accel", self._index(ts[holds], rxs[holds]), fractions)
 
     def _send_events(self, root: str, data: np.ndarray) -> None:
         """What the filter's health checks did, as log lines at the samples they did it."""
