@@ -1,5 +1,6 @@
 # The two commands a newcomer runs: `make demo` and `make test`.
-# Each builds .venv on first use (and again when pyproject.toml changes).
+# Each builds .venv on first use, and again when pyproject.toml changes or the
+# extension's source does (pip builds mavest.estimator._online beside its source).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -7,7 +8,7 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test lint clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py mavest/estimator/_online.pyx
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[dev]'

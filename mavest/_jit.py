@@ -28,7 +28,7 @@ from numba import njit, typeof
 def compiles_kernels(source: bytes) -> bool:
     """Whether a module's source takes this module's decorators (so its kernels' code
     is part of the cache's key)."""
-    return re.search(rb"_jit import [^\n]*\b(inlined_)?kernel\b", source) is not None
+    return re.search(rb"_jit import [^\n]*\b(inlined_|callback_)?kernel\b", source) is not None
 
 
 def _sources_digest() -> str:
@@ -68,11 +68,52 @@ def cache_is_warm() -> bool:
 # nogil lets the pipeline run the filter in a worker thread without holding the
 # interpreter; error_model="numpy" makes x/0 give inf/nan as NumPy does, which
 # the kernels check for, instead of raising.
-kernel = njit(cache=True, nogil=True, error_model="numpy")
+_KERNEL_OPTIONS = {"nogil": True, "error_model": "numpy"}
+kernel = njit(cache=True, **_KERNEL_OPTIONS)
 # The same, inlined into its callers at numba's IR level: for the small kernels that
 # pass over P several times a sample, where a call per block costs as much as the block
 # (the reset's block products took half as long again as separate functions).
-inlined_kernel = njit(cache=True, nogil=True, error_model="numpy", inline="always")
+inlined_kernel = njit(cache=True, inline="always", **_KERNEL_OPTIONS)
+
+
+class CallbackKernel:
+    """A kernel compiled as a C function (numba's ``cfunc``) for compiled code to call
+    through its address, with no Python objects crossing: compiled, or loaded from the
+    cache, on first use rather than at import (``numba.cfunc`` compiles when applied,
+    and importing mavest must not compile).
+
+    Under ``NUMBA_DISABLE_JIT`` there is no compiled code to call back; callers check
+    :attr:`available` and take their dispatched path instead.
+    """
+
+    def __init__(self, function: Callable[..., Any], signature: Any) -> None:
+        self.function = function
+        self.signature = signature
+        self._compiled: Any = None
+
+    @property
+    def available(self) -> bool:
+        return not numba.config.DISABLE_JIT
+
+    @property
+    def address(self) -> int:
+        """The C function's address (compiles or loads it the first time)."""
+        if self._compiled is None:
+            if not self.available:
+                raise RuntimeError("no C callbacks with NUMBA_DISABLE_JIT set")
+            self._compiled = numba.cfunc(self.signature, cache=True, **_KERNEL_OPTIONS)(
+                self.function
+            )
+        return int(self._compiled.address)
+
+
+def callback_kernel(signature: Any) -> Callable[[Callable[..., Any]], CallbackKernel]:
+    """``function`` as a :class:`CallbackKernel` of this numba signature."""
+
+    def decorate(function: Callable[..., Any]) -> CallbackKernel:
+        return CallbackKernel(function, signature)
+
+    return decorate
 
 
 def without_dispatch(function: Any, *example: Any) -> Callable[..., Any]:

@@ -1,4 +1,4 @@
-"""Shared hypothesis strategies and settings.
+"""Shared hypothesis strategies and settings, and the online step's paths.
 
 Kernels are compiled on first use; hypothesis' per-example deadline would count
 that compile time, so it is off.
@@ -6,7 +6,10 @@ that compile time, so it is off.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
+import pytest
 from hypothesis import settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
@@ -52,3 +55,17 @@ def scipy_quat(q_wxyz: np.ndarray) -> Rotation:
 
 def wxyz(rotation: Rotation) -> np.ndarray:
     return np.roll(rotation.as_quat(), 1)
+
+
+@pytest.fixture(params=["extension", "python"])
+def online_path(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
+    """Estimators made in the test take samples on this path of the online step: the
+    extension's (skipped where it is not built, which test_online's first test reports)
+    or the Python path that runs without it."""
+    from mavest.estimator import estimator, online
+
+    if request.param == "python":
+        monkeypatch.setattr(estimator, "_ONLINE", online.PythonOnline)
+    elif estimator._COMPILED is None:
+        pytest.skip("the extension is not built (test_the_extension_is_built_from_this_source)")
+    yield request.param

@@ -75,11 +75,13 @@ _SERIES_FIELDS = (
 
 
 @pytest.mark.parametrize("update", ["iterated", "sigma_point"])
-def test_update_loop_equals_update_batch_with_mag_and_linear_accel(update: str) -> None:
+def test_update_loop_equals_update_batch_with_mag_and_linear_accel(
+    update: str, online_path: str
+) -> None:
     """Every field of every step, bit for bit: a loop of update (arrays, tuples and None
-    mixed, as callers pass them) and update_batch taking over a live estimator. The
-    loop's estimates are all kept and compared at the end: each stays as it was made
-    while later ones fill the estimator's output blocks."""
+    mixed, as callers pass them) and update_batch taking over a live estimator, on each
+    path of the online step. The loop's estimates are all kept and compared at the end:
+    each stays as it was made while later ones fill the estimator's output blocks."""
     data = simulate(30.0, 100.0, motion=Motion(velocity_sigma=2.0, burst_magnitude=4.0), seed=4)
     n = len(data.t)
     mag = data.mag.copy()

@@ -106,28 +106,35 @@ def test_is_positive_definite_factors_the_matrix() -> None:
 
 def test_the_compiled_cache_is_keyed_on_every_module_that_compiles_kernels() -> None:
     """numba keys a kernel's cache on its own file only; mavest names the cache after
-    a hash of every module with kernels, found by their import of the decorators. A
-    module that compiles kernels and is not found would keep stale callees."""
+    a hash of every module with kernels (C callbacks too), found by their import of the
+    decorators. A module that compiles kernels and is not found would keep stale callees."""
     import importlib
     import pkgutil
     from pathlib import Path
+    from types import ModuleType
 
     from numba.core.registry import CPUDispatcher
 
     import mavest
     from mavest import _jit
 
+    def compiled_in(module: ModuleType, value: object) -> bool:
+        if isinstance(value, _jit.CallbackKernel):
+            value = value.function
+        elif not isinstance(value, CPUDispatcher):
+            return False
+        return value.__module__ == module.__name__
+
     checked = 0
+    callbacks = 0
     for info in pkgutil.walk_packages(mavest.__path__, "mavest."):
         module = importlib.import_module(info.name)
-        compiled = [
-            name
-            for name, value in vars(module).items()
-            if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__
-        ]
+        compiled = [name for name, value in vars(module).items() if compiled_in(module, value)]
+        callbacks += sum(isinstance(vars(module)[name], _jit.CallbackKernel) for name in compiled)
         if compiled:
             checked += 1
             source = Path(module.__file__).read_bytes()
             assert _jit.compiles_kernels(source), (info.name, compiled)
-    assert checked >= 10
+    assert checked >= 10 and callbacks >= 1
     assert not _jit.compiles_kernels(b"from mavest._jit import cache_is_warm\n")
+    assert _jit.compiles_kernels(b"from mavest._jit import callback_kernel\n")

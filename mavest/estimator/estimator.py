@@ -10,87 +10,19 @@ world frame (left error) or body frame (right error).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from mavest import so3
 from mavest._jit import kernel, without_dispatch
+from mavest.estimator import online
 from mavest.estimator.config import EstimatorConfig
-from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
+from mavest.estimator.layout import N_ERROR, make_coefficients, new_state
 from mavest.estimator.recursion import step, turn_heading
-
-# One row of an estimator's output block: what an :class:`Estimate` shows as arrays.
-_ROW_Q = slice(0, 4)
-_ROW_BIAS = slice(4, 7)
-_ROW_EULER = slice(7, 10)
-_ROW_INNOVATION = slice(10, 12)
-_ROW_COV = slice(12, 12 + N_ERROR * N_ERROR)
-_ROW_WIDTH = 12 + N_ERROR * N_ERROR
-# Rows per block: a block is shared by the estimates made from it and freed with
-# the last of them, so it is small (18 KiB) for callers that keep a few estimates.
-_BLOCK_ROWS = 48
-
-
-@kernel
-def _step_scalars(
-    state: np.ndarray,
-    coefficients: np.ndarray,
-    block: np.ndarray,
-    row: int,
-    t: float,
-    gx: float,
-    gy: float,
-    gz: float,
-    ax: float,
-    ay: float,
-    az: float,
-    mx: float,
-    my: float,
-    mz: float,
-    lx: float,
-    ly: float,
-    lz: float,
-) -> tuple[float, float, bool, int, int, bool, float, float, bool]:
-    """One step; the sample comes as scalars, which cross into numba far faster than
-    arrays. The estimate's arrays go into ``block[row]`` (layout ``_ROW_*``): one
-    row per sample, filled here, costs the caller one view instead of an array each."""
-    s = state[0]
-    sample = s.w_sample
-    sample[0] = gx
-    sample[1] = gy
-    sample[2] = gz
-    sample[3] = ax
-    sample[4] = ay
-    sample[5] = az
-    sample[6] = mx
-    sample[7] = my
-    sample[8] = mz
-    sample[9] = lx
-    sample[10] = ly
-    sample[11] = lz
-    step(s, coefficients[0], t, sample[:3], sample[3:6], sample[6:9], sample[9:])
-    out = block[row]
-    out[0:4] = s.q
-    out[4:7] = s.b
-    so3.euler_zyx_from_quat_into(s.q, out[7:10])
-    out[10:12] = s.innovation
-    for i in range(N_ERROR):
-        for j in range(N_ERROR):
-            out[12 + N_ERROR * i + j] = s.P[i, j]
-    return (
-        s.t,
-        s.nis,
-        s.accel_used != 0,
-        s.flags,
-        s.iterations,
-        s.at_rest != 0,
-        s.heading_innovation,
-        s.heading_nis,
-        s.mag_used != 0,
-    )
 
 
 @kernel
@@ -99,31 +31,35 @@ def _turn_heading(state: np.ndarray, coefficients: np.ndarray, psi: float) -> No
     turn_heading(state[0], coefficients[0], psi)
 
 
-_EntryPoints = tuple[Callable[..., tuple], Callable[..., None]]
-_ENTRY_POINTS: dict[tuple[np.dtype, np.dtype], _EntryPoints] = {}
+_TURN_ENTRY_POINTS: dict[tuple[np.dtype, np.dtype], Callable[..., None]] = {}
 
 
-def _entry_points(state: np.ndarray, coefficients: np.ndarray) -> _EntryPoints:
-    """The compiled step and heading turn for these record types, without numba's
-    per-call type dispatch (the records keep their dtypes for life).
+def _turn_entry_point(state: np.ndarray, coefficients: np.ndarray) -> Callable[..., None]:
+    """The compiled heading turn for these record types, without numba's per-call type
+    dispatch (the records keep their dtypes for life).
 
-    Resolved once per process: each takes milliseconds to load from numba's cache
-    and a trial run, which every new estimator (a reset, a new stream) would pay
-    again. Both are loaded with the first estimator, not the turn when a
-    declination first arrives: a live stream would stall for it mid-flight.
+    Resolved once per process, with the first estimator rather than when a
+    declination first arrives: loading it takes milliseconds, which a live stream
+    would stall for mid-flight.
     """
     key = (state.dtype, coefficients.dtype)
-    found = _ENTRY_POINTS.get(key)
+    found = _TURN_ENTRY_POINTS.get(key)
     if found is None:
-        nan = math.nan
-        step_example = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.8, nan, nan, nan, nan, nan, nan)
-        block = np.empty((1, _ROW_WIDTH))
-        found = (
-            without_dispatch(_step_scalars, state.copy(), coefficients, block, 0, *step_example),
-            without_dispatch(_turn_heading, state.copy(), coefficients, 0.0),
-        )
-        _ENTRY_POINTS[key] = found
+        found = without_dispatch(_turn_heading, state.copy(), coefficients, 0.0)
+        _TURN_ENTRY_POINTS[key] = found
     return found
+
+
+# The online step: the extension's where it built (and numba compiles), else the
+# Python path's, which gives the same estimates a few µs a sample slower.
+_COMPILED = online.compiled()
+_ONLINE: Callable[[np.ndarray, np.ndarray], Any]
+if _COMPILED is not None:
+    Estimate = _COMPILED.Estimate
+    _ONLINE = _COMPILED.Online
+else:
+    Estimate = online.Estimate
+    _ONLINE = online.PythonOnline
 
 
 @kernel
@@ -164,145 +100,6 @@ def _run_batch(
         out_heading_innovation[i] = s.heading_innovation
         out_heading_nis[i] = s.heading_nis
         out_mag_used[i] = s.mag_used != 0
-
-
-class Estimate:
-    """The estimate after one sample, with what the step did.
-
-    The live service makes one per IMU sample, so it is lean: its arrays are
-    views of one row the compiled step filled (``_ROW_*``), its scalars the
-    step's own return tuple; building it costs one view and one small object
-    where four array copies and a 13-field tuple cost several µs. No later step
-    writes that row, so an estimate kept stays as it was made.
-    """
-
-    __slots__ = ("_row", "_scalars")
-
-    def __init__(
-        self,
-        row: np.ndarray,
-        scalars: tuple[float, float, bool, int, int, bool, float, float, bool],
-    ) -> None:
-        self._row = row  # (_ROW_WIDTH,), never written again
-        # t, nis, accel_used, flags, iterations, at_rest, heading_innovation,
-        # heading_nis, mag_used: as _step_scalars returns them
-        self._scalars = scalars
-
-    @classmethod
-    def of(
-        cls,
-        t: float,
-        q: ArrayLike,
-        bias: ArrayLike,
-        cov: ArrayLike,
-        innovation: ArrayLike,
-        nis: float,
-        accel_used: bool,
-        flags: int,
-        iterations: int,
-        at_rest: bool,
-        heading_innovation: float,
-        heading_nis: float,
-        mag_used: bool,
-    ) -> Estimate:
-        """An estimate from its fields (e.g. one row of an :class:`EstimateSeries`)."""
-        row = np.empty(_ROW_WIDTH)
-        row[_ROW_Q] = q
-        row[_ROW_BIAS] = bias
-        row[_ROW_EULER] = so3.euler_zyx_from_quat(row[_ROW_Q])
-        row[_ROW_INNOVATION] = innovation
-        row[_ROW_COV] = np.asarray(cov, dtype=np.float64).reshape(-1)
-        scalars = (
-            float(t),
-            float(nis),
-            bool(accel_used),
-            int(flags),
-            int(iterations),
-            bool(at_rest),
-            float(heading_innovation),
-            float(heading_nis),
-            bool(mag_used),
-        )
-        return cls(row, scalars)
-
-    @property
-    def t(self) -> float:
-        """Time of the sample (s)."""
-        return self._scalars[0]
-
-    @property
-    def q(self) -> np.ndarray:
-        """(4,) w, x, y, z; body → NED."""
-        return self._row[_ROW_Q]
-
-    @property
-    def bias(self) -> np.ndarray:
-        """(3,) gyro bias, rad/s."""
-        return self._row[_ROW_BIAS]
-
-    @property
-    def cov(self) -> np.ndarray:
-        """(6, 6) covariance of [δθ, δb]."""
-        return self._row[_ROW_COV].reshape(N_ERROR, N_ERROR)
-
-    @property
-    def innovation(self) -> np.ndarray:
-        """(2,) gravity residual before the update, rad."""
-        return self._row[_ROW_INNOVATION]
-
-    @property
-    def nis(self) -> float:
-        """Normalised innovation squared (χ², 2 dof); NaN if no measurement."""
-        return self._scalars[1]
-
-    @property
-    def accel_used(self) -> bool:
-        return self._scalars[2]
-
-    @property
-    def flags(self) -> int:
-        """:class:`StepFlags` bits."""
-        return self._scalars[3]
-
-    @property
-    def iterations(self) -> int:
-        return self._scalars[4]
-
-    @property
-    def at_rest(self) -> bool:
-        """Rest detected: the bias got a zero-rate update."""
-        return self._scalars[5]
-
-    @property
-    def heading_innovation(self) -> float:
-        """Magnetometer azimuth − declination, rad; NaN if none."""
-        return self._scalars[6]
-
-    @property
-    def heading_nis(self) -> float:
-        """Its normalised square (χ², 1 dof)."""
-        return self._scalars[7]
-
-    @property
-    def mag_used(self) -> bool:
-        """The magnetometer corrected (or set) heading."""
-        return self._scalars[8]
-
-    @property
-    def euler(self) -> np.ndarray:
-        """(roll, pitch, yaw) in rad, ZYX as MAVLink's ATTITUDE."""
-        return self._row[_ROW_EULER]
-
-    @property
-    def status(self) -> list[str]:
-        """Names of the flags set, e.g. ``["ACCEL_DISTURBED"]``."""
-        return StepFlags.describe(self.flags)
-
-    def __repr__(self) -> str:
-        return (
-            f"Estimate(t={self.t!r}, q={self.q.tolist()!r}, bias={self.bias.tolist()!r},"
-            f" nis={self.nis!r}, status={self.status!r})"
-        )
 
 
 @dataclass(frozen=True)
@@ -349,29 +146,6 @@ class EstimateSeries:
         return so3.euler_zyx_from_quats(self.q)
 
 
-_UNKNOWN3 = (math.nan, math.nan, math.nan)  # no magnetometer, no known acceleration
-
-
-def _vector3(value: ArrayLike, name: str) -> np.ndarray:
-    array = np.asarray(value, dtype=np.float64)
-    if array.shape != (3,):
-        raise ValueError(f"{name} must have 3 components, got shape {array.shape}")
-    return array
-
-
-def _components3(value: ArrayLike, name: str) -> Sequence[float]:
-    """The three components of a vector as Python floats (fast for a (3,) array and for
-    a tuple of three floats, which is what the service's decoded samples carry)."""
-    kind = type(value)
-    if kind is tuple and len(value) == 3:
-        x, y, z = value
-        if type(x) is float and type(y) is float and type(z) is float:
-            return value
-    elif kind is np.ndarray and value.shape == (3,):
-        return value.tolist()
-    return _vector3(value, name).tolist()
-
-
 def _series3(value: ArrayLike, n: int, name: str) -> np.ndarray:
     array = np.ascontiguousarray(value, dtype=np.float64)
     if array.shape != (n, 3):
@@ -395,14 +169,33 @@ class Estimator:
     def __init__(self, config: EstimatorConfig | None = None) -> None:
         self.config = config if config is not None else EstimatorConfig()
         self._coefficients = make_coefficients(self.config)
-        self._bind(new_state(self._coefficients))
+        self._state = new_state(self._coefficients)
+        self._turn = _turn_entry_point(self._state, self._coefficients)
+        self._online = _ONLINE(self._state, self._coefficients)
+        self._bind_update()
+
+    def _bind_update(self) -> None:
+        # This estimator's update is its online step's own method, which a call then
+        # reaches with no Python frame of ours on the way (a frame costs as much as the
+        # rest of the way in); the method below documents it. The online step stays the
+        # same object for life, so an update fetched once follows resets.
+        self.update = self._online.update
 
     def _bind(self, state: np.ndarray) -> None:
-        """Adopt a state record, with the compiled entry points and a fresh output block."""
+        """Adopt a state record; estimates go into a fresh output block."""
         self._state = state
-        self._step, self._turn = _entry_points(state, self._coefficients)
-        self._block = np.empty((_BLOCK_ROWS, _ROW_WIDTH))  # rows the next estimates take
-        self._next_row = 0
+        self._online.bind(state)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # (for copy.deepcopy) the bound update is not copied but bound again to the copy's
+        # own online step
+        attributes = self.__dict__.copy()
+        del attributes["update"]
+        return attributes
+
+    def __setstate__(self, attributes: dict[str, Any]) -> None:
+        self.__dict__.update(attributes)
+        self._bind_update()
 
     def reset(self) -> None:
         """Forget everything; the next usable sample initialises again."""
@@ -430,7 +223,7 @@ class Estimator:
             raise ValueError("q must be a finite, non-zero quaternion (w, x, y, z)")
         s["q"] = q / np.linalg.norm(q)
         if bias is not None:
-            s["b"] = _vector3(bias, "bias")
+            s["b"] = online.vector3(bias, "bias")
         if cov is not None:
             P = np.asarray(cov, dtype=np.float64)
             if P.shape != (6, 6) or not np.all(np.isfinite(P)):
@@ -538,26 +331,7 @@ class Estimator:
         specific force, and in turns the gravity update then also sees heading.
         None (or NaN): unknown, averaged away by the low-pass.
         """
-        m = _UNKNOWN3 if mag is None else _components3(mag, "mag")
-        a = _UNKNOWN3 if linear_accel is None else _components3(linear_accel, "linear_accel")
-        row = self._next_row
-        if row == _BLOCK_ROWS:  # the estimates made from the full block keep it alive
-            self._block = np.empty((_BLOCK_ROWS, _ROW_WIDTH))
-            row = 0
-        self._next_row = row + 1
-        block = self._block
-        scalars = self._step(
-            self._state,
-            self._coefficients,
-            block,
-            row,
-            float(t),
-            *_components3(gyro, "gyro"),
-            *_components3(accel, "accel"),
-            *m,
-            *a,
-        )
-        return Estimate(block[row], scalars)
+        return self._online.update(t, gyro, accel, mag, linear_accel)
 
     def update_batch(
         self,

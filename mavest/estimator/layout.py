@@ -31,6 +31,25 @@ N_CONSIDER = 9
 N_STATE_MAX = N_ERROR + N_CONSIDER
 N_SIGMA_MAX = 2 * N_STATE_MAX + 1
 
+# One row of the online estimator's output block (float64), filled by the compiled step:
+# what an Estimate shows. The arrays first, at these offsets, then the step's scalars
+# (the flags and counts are integers, exact in a float64).
+ROW_Q = 0  # 4: w, x, y, z
+ROW_BIAS = 4  # 3
+ROW_EULER = 7  # 3: roll, pitch, yaw
+ROW_INNOVATION = 10  # 2
+ROW_COV = 12  # N_ERROR × N_ERROR, row by row
+ROW_T = ROW_COV + N_ERROR * N_ERROR
+ROW_NIS = ROW_T + 1
+ROW_ACCEL_USED = ROW_T + 2
+ROW_FLAGS = ROW_T + 3
+ROW_ITERATIONS = ROW_T + 4
+ROW_AT_REST = ROW_T + 5
+ROW_HEADING_INNOVATION = ROW_T + 6
+ROW_HEADING_NIS = ROW_T + 7
+ROW_MAG_USED = ROW_T + 8
+ROW_WIDTH = ROW_T + 9
+
 # Integer codes of the structural choices: their position in the config's tuples.
 UPDATE_EKF, UPDATE_ITERATED, UPDATE_SIGMA_POINT = range(len(UPDATE_KINDS))
 ERROR_LEFT, ERROR_RIGHT = range(len(ERROR_SIDES))
