@@ -139,6 +139,26 @@ def _lean_cache_class() -> type | None:
     class _KernelCache(FunctionCache):
         _impl_class = _KernelCacheImpl
 
+        def __init__(self, py_func: Any) -> None:
+            # numba sets a function's cache up when it is defined (finds its file, checks
+            # the directory is writable with a temporary file, hashes the source): for
+            # the 150 kernels defined at import, of which a command loads a dozen. Here
+            # that waits for the first use of what it sets (see __getattr__).
+            self._py_func = py_func
+            self._set_up = False
+
+        def __getattr__(self, name: str) -> Any:
+            # (called only for what is not set yet)
+            if name.startswith("__") or vars(self).get("_set_up", True):
+                raise AttributeError(name)
+            self._set_up = True
+            try:
+                FunctionCache.__init__(self, self._py_func)
+            except BaseException:
+                self._set_up = False  # (raised again on the next use, as numba would)
+                raise
+            return getattr(self, name)
+
         def load_overload(self, sig: Any, target_context: Any) -> Any:
             rtsys.initialize(target_context)
             with self._guard_against_spurious_io_errors():

@@ -68,6 +68,18 @@ def test_a_cached_kernel_loads_without_numbas_set_up_unless_a_symbol_is_missing(
     assert _probe(tmp_path) == (compiled, True)
 
 
+def test_a_kernels_cache_is_set_up_when_first_used() -> None:
+    assert _jit._KernelCache is not None
+
+    def double(x: float) -> float:
+        return 2 * x
+
+    cache = _jit._KernelCache(double)
+    assert "_impl" not in vars(cache)
+    assert Path(cache.cache_path).is_relative_to(_jit.CACHE_DIRECTORY)
+    assert "_impl" in vars(cache)
+
+
 def test_numbas_own_cache_where_its_internals_are_not_as_expected(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
