@@ -9,6 +9,9 @@ the compile time. numba keys each function's cache on its own source file
 only, so a kernel would keep a stale copy of a callee edited in another file;
 the cache directory is therefore named after a hash of every source file that
 defines kernels (editing the command line does not force a recompile).
+
+Loading a kernel from that cache skips numba's set-up for compiling (see
+:func:`_lean_cache_class`), which was the largest part of every command's start.
 """
 
 from __future__ import annotations
@@ -65,15 +68,133 @@ def cache_is_warm() -> bool:
     return any(CACHE_DIRECTORY.rglob("*.nbi"))
 
 
+def _external_symbols(bitcode: bytes) -> tuple[str, ...]:
+    """The symbols a compiled module takes from outside itself (numba's runtime and
+    helpers, libm, Python's C API), by name; LLVM's own intrinsics need no one."""
+    import llvmlite.binding as ll
+
+    module = ll.parse_bitcode(bitcode)
+    return tuple(
+        sorted(
+            value.name
+            for values in (module.functions, module.global_variables)
+            for value in values
+            if value.is_declaration and not value.name.startswith("llvm.")
+        )
+    )
+
+
+def _lean_cache_class() -> type | None:
+    """numba's disk cache for mavest's kernels, loading them without numba's set-up
+    for compiling; None if this numba's cache is not built as expected.
+
+    Before each load from the cache, numba refreshes its compiler's target: it
+    imports and registers every typing and lowering module it has, its linear
+    algebra among them, whose BLAS check imports scipy.linalg. That was about half a
+    second of every command's start, and a load uses none of it: a cached kernel is
+    object code, which needs numba's runtime (NRT, initialised here as the refresh
+    does first) and symbols numba registers when it starts (helpers, libm), plus any
+    that a module registers when imported. So that no kernel runs with a symbol
+    missing (a crash, not an error), each entry records, when compiled, the external
+    symbols it uses; a load that finds one not yet defined refreshes first, as numba
+    would. A compile (a cache miss) refreshes as always: numba's compiler does it
+    itself.
+    """
+    try:
+        import llvmlite.binding as ll
+        from numba.core.caching import CompileResultCacheImpl, FunctionCache
+        from numba.core.runtime import rtsys
+    except ImportError:
+        return None
+    if not all(
+        callable(getattr(owner, name, None))
+        for owner, name in (
+            (FunctionCache, "_load_overload"),
+            (FunctionCache, "_guard_against_spurious_io_errors"),
+            (CompileResultCacheImpl, "reduce"),
+            (CompileResultCacheImpl, "rebuild"),
+            (rtsys, "initialize"),
+        )
+    ):
+        return None
+
+    class _KernelCacheImpl(CompileResultCacheImpl):
+        def reduce(self, cres: Any) -> Any:
+            payload = super().reduce(cres)
+            try:
+                # numba's entry starts with its library: (name, "object", (object
+                # code, the module's bitcode)) for the JIT's
+                _, kind, data = payload[0]
+                symbols = _external_symbols(data[1]) if kind == "object" else None
+            except Exception:  # laid out otherwise: none recorded, so loads set up
+                symbols = None
+            return (payload, symbols)
+
+        def rebuild(self, target_context: Any, entry: Any) -> Any:
+            payload, symbols = entry if len(entry) == 2 else (entry, None)
+            if symbols is None or not all(map(ll.address_of_symbol, symbols)):
+                target_context.refresh()  # what numba does before every load
+            return super().rebuild(target_context, payload)
+
+    class _KernelCache(FunctionCache):
+        _impl_class = _KernelCacheImpl
+
+        def __init__(self, py_func: Any) -> None:
+            # numba sets a function's cache up when it is defined (finds its file, checks
+            # the directory is writable with a temporary file, hashes the source): for
+            # the 150 kernels defined at import, of which a command loads a dozen. Here
+            # that waits for the first use of what it sets (see __getattr__).
+            self._py_func = py_func
+            self._set_up = False
+
+        def __getattr__(self, name: str) -> Any:
+            # (called only for what is not set yet)
+            if name.startswith("__") or vars(self).get("_set_up", True):
+                raise AttributeError(name)
+            self._set_up = True
+            try:
+                FunctionCache.__init__(self, self._py_func)
+            except BaseException:
+                self._set_up = False  # (raised again on the next use, as numba would)
+                raise
+            return getattr(self, name)
+
+        def load_overload(self, sig: Any, target_context: Any) -> Any:
+            rtsys.initialize(target_context)
+            with self._guard_against_spurious_io_errors():
+                return self._load_overload(sig, target_context)
+
+    return _KernelCache
+
+
+_KernelCache = _lean_cache_class()
+
+
+def _compiled(**options: Any) -> Callable[[Callable[..., Any]], Any]:
+    """A decorator compiling with ``options``, cached on disk."""
+    compile_function = njit(**_KERNEL_OPTIONS, **options)
+    cached = njit(cache=True, **_KERNEL_OPTIONS, **options)
+
+    def decorate(function: Callable[..., Any]) -> Any:
+        if _KernelCache is None:
+            return cached(function)
+        dispatcher = compile_function(function)
+        if hasattr(dispatcher, "_cache"):  # (not with NUMBA_DISABLE_JIT: plain Python)
+            dispatcher._cache = _KernelCache(dispatcher.py_func)
+        return dispatcher
+
+    return decorate
+
+
 # nogil lets the pipeline run the filter in a worker thread without holding the
 # interpreter; error_model="numpy" makes x/0 give inf/nan as NumPy does, which
 # the kernels check for, instead of raising.
 _KERNEL_OPTIONS = {"nogil": True, "error_model": "numpy"}
-kernel = njit(cache=True, **_KERNEL_OPTIONS)
+kernel = _compiled()
 # The same, inlined into its callers at numba's IR level: for the small kernels that
 # pass over P several times a sample, where a call per block costs as much as the block
 # (the reset's block products took half as long again as separate functions).
-inlined_kernel = njit(cache=True, inline="always", **_KERNEL_OPTIONS)
+inlined_kernel = _compiled(inline="always")
 
 
 class CallbackKernel:

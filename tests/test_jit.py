@@ -1,0 +1,116 @@
+"""How kernels load from the disk cache: without numba's set-up for compiling, unless
+a kernel needs a symbol that only that set-up defines; numba's own cache where its
+internals are not what mavest expects."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mavest import _jit
+
+KERNELS = """
+import math
+
+import numpy as np
+
+from mavest._jit import kernel
+
+
+@kernel
+def roots(n):
+    out = np.empty(n)  # allocated by numba's runtime (NRT)
+    for i in range(n):
+        out[i] = math.sqrt(i)
+    return out
+"""
+
+PROBE = """
+import sys
+
+import tiny_kernels
+
+print(tiny_kernels.roots(5).sum(), "numba.np.arraymath" in sys.modules)
+"""
+
+
+def _probe(directory: Path) -> tuple[str, bool]:
+    """The kernel's result in a fresh process, and whether numba's compiler was set up."""
+    env = dict(os.environ, MAVEST_CACHE_DIR=str(directory / "cache"), PYTHONPATH=str(directory))
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    return out[0], out[1] == "True"
+
+
+def test_a_cached_kernel_loads_without_numbas_set_up_unless_a_symbol_is_missing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "tiny_kernels.py").write_text(KERNELS)
+    compiled, set_up = _probe(tmp_path)  # compiles, and caches
+    assert set_up and float(compiled) == pytest.approx(sum(i**0.5 for i in range(5)))
+    assert _probe(tmp_path) == (compiled, False)
+
+    (entry_file,) = (tmp_path / "cache").rglob("*.nbc")
+    monkeypatch.syspath_prepend(str(tmp_path))  # (the entry names the kernel's module)
+    payload, symbols = pickle.loads(entry_file.read_bytes())
+    assert any(name.startswith("NRT_") for name in symbols), symbols
+    # a symbol the kernel would need and nothing has defined yet: set up first
+    entry_file.write_bytes(pickle.dumps((payload, (*symbols, "mavest_no_such_symbol"))))
+    assert _probe(tmp_path) == (compiled, True)
+    # an entry without the symbols (numba's own): set up first, as numba does
+    entry_file.write_bytes(pickle.dumps(payload))
+    assert _probe(tmp_path) == (compiled, True)
+
+
+def test_a_kernels_cache_is_set_up_when_first_used() -> None:
+    assert _jit._KernelCache is not None
+
+    def double(x: float) -> float:
+        return 2 * x
+
+    cache = _jit._KernelCache(double)
+    assert "_impl" not in vars(cache)
+    assert Path(cache.cache_path).is_relative_to(_jit.CACHE_DIRECTORY)
+    assert "_impl" in vars(cache)
+
+
+def test_numbas_own_cache_where_its_internals_are_not_as_expected(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from numba.core.caching import Cache, FunctionCache
+
+    monkeypatch.delattr(Cache, "_load_overload")
+    assert _jit._lean_cache_class() is None
+    monkeypatch.setattr(_jit, "_KernelCache", None)
+
+    def double(x: float) -> float:
+        return 2 * x
+
+    assert type(_jit._compiled()(double)._cache) is FunctionCache
+
+
+REPLAY = """
+import sys
+
+from mavest.cli import main
+
+main(["replay", sys.argv[1], "--out-tlog", sys.argv[2], "-q"])
+print(*(name in sys.modules for name in ("numba.np.arraymath", "scipy.linalg")))
+"""
+
+
+def test_a_replay_starts_without_numbas_compiler_or_scipy(tmp_path: Path) -> None:
+    from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
+
+    flight = tmp_path / "flight.tlog"
+    write_flight_tlog(flight, 1.0, 1000.0, AUTOPILOTS["ardupilot"], seed=1)
+    command = [sys.executable, "-c", REPLAY, str(flight), str(tmp_path / "ours.tlog")]
+    subprocess.run(command, capture_output=True, check=True)  # (compiles if not cached yet)
+    out = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    assert out.splitlines()[-1] == "False False", out
