@@ -222,10 +222,28 @@ class CallbackKernel:
         if self._compiled is None:
             if not self.available:
                 raise RuntimeError("no C callbacks with NUMBA_DISABLE_JIT set")
-            self._compiled = numba.cfunc(self.signature, cache=True, **_KERNEL_OPTIONS)(
-                self.function
-            )
+            self._compiled = self._compile()
         return int(self._compiled.address)
+
+    def _compile(self) -> Any:
+        """numba's ``cfunc(signature, cache=True)``, loading from the cache as the
+        kernels do (:func:`_lean_cache_class`) where numba's internals allow."""
+        try:
+            from numba.core.ccallback import CFunc
+            from numba.core.sigutils import normalize_signature
+
+            compiled = CFunc(
+                self.function, normalize_signature(self.signature), {}, dict(_KERNEL_OPTIONS)
+            )
+            compiled._cache  # noqa: B018 (numba keeps its cache there: checked here)
+        except (ImportError, TypeError, AttributeError):
+            return numba.cfunc(self.signature, cache=True, **_KERNEL_OPTIONS)(self.function)
+        if _KernelCache is None:
+            compiled.enable_caching()
+        else:
+            compiled._cache = _KernelCache(self.function)
+        compiled.compile()
+        return compiled
 
 
 def callback_kernel(signature: Any) -> Callable[[Callable[..., Any]], CallbackKernel]:
