@@ -215,7 +215,7 @@ def test_service_uses_the_vehicles_declination_and_says_when_heading_is_free(
     report = asyncio.run(replay(path, ServiceConfig()))
     assert "heading is free (6-D)" in caplog.text
     (stream,) = report.pipeline.streams.values()
-    assert stream.stats.mag_samples == 0 and not stream.estimator.heading_referenced
+    assert stream.stats.mag_usable == 0 and not stream.estimator.heading_referenced
 
 
 # --------------------------------------------------------------------------

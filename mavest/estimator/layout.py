@@ -97,6 +97,10 @@ class StepFlags:
     # this sample's magnetometer reading was not used: the last one taken was less
     # than the update interval ago
     MAG_BETWEEN_UPDATES = 8388608
+    # this sample's magnetometer reading was not looked at: the attitude it would
+    # correct is not known (re-aligned after a gap, or waiting for calm after a
+    # clipped gyro)
+    MAG_SET_ASIDE = 16777216
 
     SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING
 
@@ -142,6 +146,9 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("accel_lowpass_damping", np.float64),
         ("lowpass_restart_angle", np.float64),
         ("update_interval", np.float64),  # s between measurement updates (0: every sample)
+        # 1: between updates the covariance's transition is accumulated and applied
+        # at the next update (recursion's "pending transition"); 0: every sample's
+        ("accumulate", np.int64),
         ("velocity_var", np.float64),
         ("velocity_time", np.float64),
         ("aided_velocity_var", np.float64),
@@ -203,6 +210,20 @@ STATE_DTYPE = np.dtype(
         ("rest_samples", np.int64),
         ("rest_sum_time", np.float64),
         ("t_update", np.float64),  # time of the last update sample (gravity, zero rate)
+        # The covariance's transition since P's considered rows were last brought up to
+        # date (recursion._flush_pending): the steps in it, P's 6×6 then, and the
+        # linear map of the error x = [δθ, δb, u] (u = ε, ḟ, v) over them,
+        #   δθ ← Θθ δθ + Θb δb,   u ← (A ⊗ I₃) u + U [δθ; δb],
+        # with the low-pass's own noise N (per axis, in ε, ḟ, v) added. P's 6×6 itself
+        # is kept up to date every sample.
+        ("pending_steps", np.int64),
+        ("pending_P6", np.float64, (N_ERROR, N_ERROR)),
+        ("pending_theta", np.float64, (3, 3)),  # Θθ
+        ("pending_bias", np.float64, (3, 3)),  # Θb
+        ("pending_U", np.float64, (N_CONSIDER, N_ERROR)),
+        ("pending_stage", np.float64, (3, 3)),  # A: on (ε, ḟ, v) of each axis alike
+        ("pending_noise", np.float64, (3, 3)),  # N
+        ("pending_aided", np.int64),  # U's δθ columns are not zero
         ("health_checks", np.int64),
         ("filters_primed", np.int64),  # the three low-passes hold a sample
         # the magnetometer: 0 heading free (6-D), 1 heading set and the reference
@@ -315,6 +336,8 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["update_interval"] = (
         1.0 / config.update_rate if config.update_rate > 0.0 and n > N_ERROR else 0.0
     )
+    # (the sigma-point prediction is not linear: it keeps propagating every sample)
+    c["accumulate"] = int(c["update_interval"][0] > 0.0 and config.update != "sigma_point")
     c["velocity_var"] = config.velocity_sigma**2
     c["velocity_time"] = config.velocity_time
     c["aided_velocity_var"] = config.aided_velocity_sigma**2

@@ -69,12 +69,14 @@ import math
 import numpy as np
 
 from mavest import so3, sphere
-from mavest._jit import kernel
+from mavest._jit import inlined_kernel, kernel
 from mavest.estimator import gravity, magnetic
 from mavest.estimator.charts import local_into, reset_jacobian_into, retract_into
 from mavest.estimator.layout import (
     ERROR_LEFT,
+    N_CONSIDER,
     N_ERROR,
+    N_STATE_MAX,
     UPDATE_SIGMA_POINT,
     CoefficientsRecord,
     StateRecord,
@@ -98,6 +100,7 @@ _MIN_ACCEL_FRACTION = 0.05
 _EPS = N_ERROR
 _RATE = N_ERROR + 3
 _VEL = N_ERROR + 6
+N_STATE = N_STATE_MAX  # with the low-pass: what the pending transition carries
 # A floor under the measurement variance, so that S stays invertible (the
 # low-passed measurement's noise lives in ε).
 _MIN_DIRECTION_VAR = 1e-14
@@ -126,6 +129,7 @@ _UNHEALTHY_RESET = StepFlags.UNHEALTHY_RESET
 _DIVERGED = StepFlags.DIVERGED
 _BETWEEN_UPDATES = StepFlags.BETWEEN_UPDATES
 _MAG_BETWEEN_UPDATES = StepFlags.MAG_BETWEEN_UPDATES
+_MAG_SET_ASIDE = StepFlags.MAG_SET_ASIDE
 
 
 # --------------------------------------------------------------------------
@@ -335,6 +339,7 @@ def _align(
     At rest a = −g Rᵀe₃ with Rᵀe₃ = (−sin θ, sin φ cos θ, cos φ cos θ) for ZYX
     angles, hence roll φ = atan2(−a_y, −a_z), pitch θ = atan2(a_x, √(a_y² + a_z²)).
     """
+    _flush_pending(s, c)
     roll = math.atan2(-accel[1], -accel[2])
     pitch = math.atan2(accel[0], math.hypot(accel[1], accel[2]))
     yaw = 0.0
@@ -370,6 +375,7 @@ def _prime_filters(
     velocity, which carries on with its correlations — it is the vehicle's,
     not the filter's.
     """
+    _flush_pending(s, c)
     s.rest_gyro_lp[:] = gyro
     s.rest_accel_lp[:] = accel
     s.rest_time = 0.0
@@ -384,7 +390,7 @@ def _prime_filters(
             s.P[j, i] = 0.0
     s.accel_world_lp[1, :] = 0.0
     s.lowpass_time = 0.0
-    _absorb_sample(s, c, accel, dt)  # mean mode with nothing averaged yet: β = 0
+    _absorb_sample(s, c, accel, dt, True)  # mean mode with nothing averaged yet: β = 0
     for a in range(3):  # ḟ is known to be zero; a hair keeps P definite
         s.P[_RATE + a, _RATE + a] = 1e-12 * s.P[_EPS + a, _EPS + a]
 
@@ -447,11 +453,11 @@ def _world_tilt_rows(s: StateRecord, c: CoefficientsRecord, out: np.ndarray) -> 
 
 
 @kernel
-def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float) -> None:
-    """P += Q_d (Van Loan, with the cross term's rotation M in w_n33).
+def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float, n: int) -> None:
+    """P[:n, :n] += Q_d (Van Loan, with the cross term's rotation M in w_n33).
 
-    With the considered ε, its rows receive G = g E W times the attitude
-    noise: the same noise moves δθ and, through it, ε.
+    With the considered ε (n > 6), its rows receive G = g E W times the
+    attitude noise: the same noise moves δθ and, through it, ε.
     """
     var_g = c.gyro_var_density
     var_b = c.bias_var_density
@@ -466,7 +472,7 @@ def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float) -> None
             v = q_ab * s.w_n33[i, j]
             P[i, 3 + j] += v
             P[3 + j, i] += v
-    if c.n_state == N_ERROR:
+    if n == N_ERROR:
         return
     G = s.w_H  # 2×3 scratch (the update rewrites it)
     _world_tilt_rows(s, c, G)
@@ -494,8 +500,12 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
 
     Φ differs from I only in the δθ rows (Φ_θθ, Φ_θb) and, with the low-pass,
     the ε x, y rows (G Φ_θb); those rows and columns are all that change.
+    Between updates (``c.accumulate``) only P's 6×6 is propagated here, and Φ
+    joins the pending transition of the considered rows (:func:`_flush_pending`).
     """
-    n = c.n_state
+    if c.accumulate:  # (before P's 6×6 moves: the interval starts from it)
+        _open_pending(s)
+    n = N_ERROR if c.accumulate else c.n_state
     phi = s.w_v3
     for i in range(3):
         phi[i] = (gyro[i] - s.b[i]) * dt
@@ -521,7 +531,7 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
     so3.quat_multiply_into(s.w_p4, s.w_q4, s.q)
     so3.quat_normalize_into(s.q)
     G = s.w_G  # ε x, y rows of Φ: G Φ_θb, with G = g E W after the step
-    if n > N_ERROR:
+    if c.n_state > N_ERROR:
         _world_tilt_rows(s, c, s.w_H)
         for a in range(2):
             for j in range(3):
@@ -559,7 +569,267 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
         if n > N_ERROR:
             P[i, _EPS] += G[0, 0] * b0 + G[0, 1] * b1 + G[0, 2] * b2
             P[i, _EPS + 1] += G[1, 0] * b0 + G[1, 1] * b1 + G[1, 2] * b2
-    _add_process_noise(s, c, dt)
+    _add_process_noise(s, c, dt, n)
+    if c.accumulate:
+        _accumulate_prediction(s, c)
+
+
+# --------------------------------------------------------------------------
+# The pending transition: between updates only P's 6×6 follows every sample
+# --------------------------------------------------------------------------
+#
+# Between two updates nothing reads P's considered rows (ε, ḟ, v): only the
+# predictions and the low-pass's steps change them, and those are linear maps
+# of the error, so their product is accumulated per sample (3×3 and 9×6 blocks,
+# a few dozen products) and applied once, at the next update or whatever else
+# needs the whole P (:func:`_flush_pending`). P's 6×6, what the estimate shows,
+# is propagated every sample as before.
+#
+# Exact but for one thing: the attitude noise a prediction adds reaches ε too
+# (ε moves with δθ, G Δθ), and the accumulated transition carries that as if it
+# came at the flush: the low-pass's dynamics over the rest of the interval (ωΔT
+# with ω = √2/τ: 1 % at 50 Hz for τ = 3 s) and an aided sample's share of it are
+# left out of that part of the noise. The low-pass's own noise (η, ξ) is
+# accumulated exactly.
+
+
+@kernel
+def _open_pending(s: StateRecord) -> None:
+    """Another transition joins the pending one; the first after a flush starts a new
+    interval: P's 6×6 as it stands, the identity transition, no noise."""
+    s.pending_steps += 1
+    if s.pending_steps > 1:
+        return
+    s.pending_P6[:, :] = s.P[:N_ERROR, :N_ERROR]
+    _set_identity(s.pending_theta)
+    _set_identity(s.pending_stage)
+    for i in range(3):
+        for j in range(3):
+            s.pending_bias[i, j] = 0.0
+            s.pending_noise[i, j] = 0.0
+    for i in range(N_CONSIDER):
+        for j in range(N_ERROR):
+            s.pending_U[i, j] = 0.0
+    s.pending_aided = 0
+
+
+@kernel
+def _accumulate_prediction(s: StateRecord, c: CoefficientsRecord) -> None:
+    """The prediction :func:`_predict_linear` just made (Φ_θθ in w_n33 for the right
+    error, Φ_θb in w_m33, G Φ_θb in w_G) after the pending transition."""
+    F = s.w_m33
+    theta = s.pending_theta
+    bias = s.pending_bias
+    if c.error != ERROR_LEFT:  # Θθ ← E Θθ, Θb ← E Θb (E = Exp(−φ))
+        E = s.w_n33
+        for M in (theta, bias):
+            for j in range(3):
+                m0, m1, m2 = M[0, j], M[1, j], M[2, j]
+                for i in range(3):
+                    M[i, j] = E[i, 0] * m0 + E[i, 1] * m1 + E[i, 2] * m2
+    for i in range(3):
+        for j in range(3):
+            bias[i, j] += F[i, j]
+    if c.n_state > N_ERROR:  # ε x, y ← ε + G Φ_θb δb
+        for a in range(2):
+            for j in range(3):
+                s.pending_U[a, 3 + j] += s.w_G[a, j]
+
+
+@kernel
+def _accumulate_absorb(
+    s: StateRecord,
+    c: CoefficientsRecord,
+    A: tuple[float, float, float, float, float, float, float],
+    noise: tuple[float, float, float, float, float, float],
+    g0: float,
+    g1: float,
+    aided: bool,
+) -> None:
+    """The low-pass's step (:func:`_absorb_sample`) after the pending transition: u ←
+    (A ⊗ I₃) u with A = [[a00, a01, a02], [a10, a11, a12], [0, 0, γ]] (``A`` those seven),
+    its noise (``noise``: N's upper triangle) added, and with a known acceleration
+    :func:`_couple_aided_sample`'s [ε; ḟ] += [Γ₀; Γ₁] M δθ."""
+    _open_pending(s)  # (a flush may have come between the prediction and this)
+    a00, a01, a02, a10, a11, a12, gamma = A
+    U = s.pending_U
+    first = 0 if s.pending_aided else 3  # U's δθ columns are zero until an aided sample
+    for axis in range(3):
+        e, d, v = axis, 3 + axis, 6 + axis
+        for j in range(first, N_ERROR):
+            pe, pd, pv = U[e, j], U[d, j], U[v, j]
+            U[e, j] = a00 * pe + a01 * pd + a02 * pv
+            U[d, j] = a10 * pe + a11 * pd + a12 * pv
+            U[v, j] = gamma * pv
+    S = s.pending_stage
+    for j in range(3):
+        pe, pd, pv = S[0, j], S[1, j], S[2, j]
+        S[0, j] = a00 * pe + a01 * pd + a02 * pv
+        S[1, j] = a10 * pe + a11 * pd + a12 * pv
+        S[2, j] = gamma * pv
+    N = s.pending_noise  # A N Aᵀ + the step's own
+    for j in range(3):
+        pe, pd, pv = N[0, j], N[1, j], N[2, j]
+        N[0, j] = a00 * pe + a01 * pd + a02 * pv
+        N[1, j] = a10 * pe + a11 * pd + a12 * pv
+        N[2, j] = gamma * pv
+    for i in range(3):
+        pe, pd, pv = N[i, 0], N[i, 1], N[i, 2]
+        N[i, 0] = a00 * pe + a01 * pd + a02 * pv
+        N[i, 1] = a10 * pe + a11 * pd + a12 * pv
+        N[i, 2] = gamma * pv
+    n00, n01, n02, n11, n12, n22 = noise
+    N[0, 0] += n00
+    N[0, 1] += n01
+    N[1, 0] += n01
+    N[0, 2] += n02
+    N[2, 0] += n02
+    N[1, 1] += n11
+    N[1, 2] += n12
+    N[2, 1] += n12
+    N[2, 2] += n22
+    if not aided:
+        return
+    M = _aided_coupling(s, c)  # the current δθ is Θθ δθ₀ + Θb δb₀
+    s.pending_aided = 1
+    skew = c.error == ERROR_LEFT  # M = [a]×
+    for j in range(N_ERROR):
+        T = s.pending_theta if j < 3 else s.pending_bias
+        k = j % 3
+        m0, m1, m2 = _times3(M, skew, T[0, k], T[1, k], T[2, k])
+        U[0, j] += g0 * m0
+        U[1, j] += g0 * m1
+        U[2, j] += g0 * m2
+        U[3, j] += g1 * m0
+        U[4, j] += g1 * m1
+        U[5, j] += g1 * m2
+
+
+@inlined_kernel
+def _along_stages(S: np.ndarray, stage: int, M: np.ndarray, row: int, j: int) -> float:
+    """(S ⊗ I₃) applied to column j of the considered rows of M, its entry (stage, axis)
+    with ``row`` = N_ERROR + axis: the considered rows are ε, ḟ, v of each axis."""
+    return S[stage, 0] * M[row, j] + S[stage, 1] * M[row + 3, j] + S[stage, 2] * M[row + 6, j]
+
+
+@inlined_kernel
+def _row_times_column(A: np.ndarray, i: int, B: np.ndarray, j: int) -> float:
+    """(A B)[i, j] for A with three columns."""
+    return A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@kernel
+def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
+    """Bring P's considered rows up to date: apply the pending transition (with x₆ =
+    [δθ, δb], X = P's u rows' x₆ part and Y its u part at the interval's start,
+    P₆ = pending_P6, Φ₆ = [[Θθ, Θb], [0, I]], Λ = A ⊗ I₃):
+
+        P_u6 ← (Λ X + U P₆) Φ₆ᵀ + Q_u6,
+        P_uu ← Λ Y Λᵀ + (Λ X + U P₆) Uᵀ + U (Λ X)ᵀ + I₃ ⊗ N + Q_uu.
+
+    P's 6×6 is already the interval's end; what its prediction noise added,
+    Q₆ = P_6 − Φ₆ P₆ Φ₆ᵀ, reaches ε through G = g E W as each prediction's did:
+    Q_ε6 = G Q₆'s δθ rows, Q_εε = G Q₆θθ Gᵀ (ε x, y; see the section's comment).
+    U's v rows are zero (nothing reaches v but its own noise), and its δθ columns
+    until an aided sample: the sums skip them.
+    """
+    if s.pending_steps == 0:
+        return
+    s.pending_steps = 0
+    P = s.P
+    P6 = s.pending_P6
+    U = s.pending_U
+    S = s.pending_stage
+    theta = s.pending_theta
+    bias = s.pending_bias
+    first = 0 if s.pending_aided else 3  # U's first non-zero column
+    live = 0  # U's non-zero rows, as bits (unaided: ε and ḟ of x and y only)
+    for r in range(6):
+        for k in range(first, N_ERROR):
+            if U[r, k] != 0.0:
+                live |= 1 << r
+    # Q₆'s δθ rows (all that reaches ε) into w_B[:3, :6], via Φ₆'s δθ rows times P₆
+    PhiP = s.w_A
+    for i in range(3):
+        for j in range(N_ERROR):
+            acc = 0.0
+            for k in range(3):
+                acc += theta[i, k] * P6[k, j] + bias[i, k] * P6[3 + k, j]
+            PhiP[i, j] = acc
+    Q = s.w_B
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += PhiP[i, k] * theta[j, k] + PhiP[i, 3 + k] * bias[j, k]
+            Q[i, j] = P[i, j] - acc
+            Q[i, 3 + j] = P[i, 3 + j] - PhiP[i, 3 + j]
+    G = s.w_H  # 2×3 scratch (the update rewrites it)
+    _world_tilt_rows(s, c, G)
+    GQ = s.w_C  # G Q₆'s δθ rows (2×6) into w_C[:6, :2] (transposed), G Q₆θθ Gᵀ below
+    for a in range(2):
+        for j in range(N_ERROR):
+            GQ[j, a] = _row_times_column(G, a, Q, j)
+    # V = Λ X into w_A[6:, :6]; Z = V + U P₆ into w_B[6:, :6]
+    V = s.w_A
+    Z = s.w_B
+    for stage in range(3):
+        for axis in range(3):
+            r = N_ERROR + 3 * stage + axis
+            for j in range(N_ERROR):
+                V[r, j] = _along_stages(S, stage, P, N_ERROR + axis, j)
+                acc = V[r, j]
+                if live >> (r - N_ERROR) & 1:
+                    for k in range(first, N_ERROR):
+                        acc += U[r - N_ERROR, k] * P6[k, j]
+                Z[r, j] = acc
+    # Λ Y's rows into w_T[6:, 6:], then the new P_uu (lower triangle, mirrored)
+    LY = s.w_T
+    for stage in range(3):
+        for axis in range(3):
+            r = N_ERROR + 3 * stage + axis
+            for j in range(N_ERROR, N_STATE):
+                LY[r, j] = _along_stages(S, stage, P, N_ERROR + axis, j)
+    N = s.pending_noise
+    for r in range(N_ERROR, N_STATE):
+        stage_r, axis_r = (r - N_ERROR) // 3, (r - N_ERROR) % 3
+        live_r = live >> (r - N_ERROR) & 1
+        for q in range(N_ERROR, r + 1):
+            stage_q, axis_q = (q - N_ERROR) // 3, (q - N_ERROR) % 3
+            acc = (
+                LY[r, N_ERROR + axis_q] * S[stage_q, 0]
+                + LY[r, N_ERROR + 3 + axis_q] * S[stage_q, 1]
+                + LY[r, N_ERROR + 6 + axis_q] * S[stage_q, 2]
+            )
+            if live >> (q - N_ERROR) & 1:  # Z Uᵀ
+                for k in range(first, N_ERROR):
+                    acc += Z[r, k] * U[q - N_ERROR, k]
+            if live_r:  # U Vᵀ
+                for k in range(first, N_ERROR):
+                    acc += U[r - N_ERROR, k] * V[q, k]
+            if axis_r == axis_q:
+                acc += N[stage_r, stage_q]
+            if r < _EPS + 2 and q < _EPS + 2:  # Q_εε = G Q₆θθ Gᵀ
+                a = q - _EPS
+                acc += GQ[0, r - _EPS] * G[a, 0] + GQ[1, r - _EPS] * G[a, 1]
+                acc += GQ[2, r - _EPS] * G[a, 2]
+            P[r, q] = acc
+            P[q, r] = acc
+    # the new P_u6 = Z Φ₆ᵀ + Q_u6 last: Z and V were made from the old one
+    for r in range(N_ERROR, N_STATE):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += Z[r, k] * theta[j, k] + Z[r, 3 + k] * bias[j, k]
+            if r < _EPS + 2:  # Q_ε6 = G Q₆'s δθ rows
+                acc += GQ[j, r - _EPS]
+            P[r, j] = acc
+            P[j, r] = acc
+            acc = Z[r, 3 + j]
+            if r < _EPS + 2:
+                acc += GQ[3 + j, r - _EPS]
+            P[r, 3 + j] = acc
+            P[3 + j, r] = acc
 
 
 @kernel
@@ -660,7 +930,7 @@ def _predict_sigma_point(
     _weighted_mean_and_covariance_of_chi(s, c, s.w_dx)
     for i in range(_EPS, n):  # ε is considered: its mean stays zero
         s.w_dx[i] = 0.0
-    _add_process_noise(s, c, dt)
+    _add_process_noise(s, c, dt, n)
     _apply_correction(s, c, s.w_dx)
     return True
 
@@ -1005,7 +1275,9 @@ def _lowpass_step(
 
 
 @kernel
-def _absorb_sample(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float) -> None:
+def _absorb_sample(
+    s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float, direct: bool
+) -> None:
     """The low-pass takes the sample; its errors and the velocity follow.
 
     For the first τ after priming, f̄ is the time-weighted running mean of R̄a
@@ -1047,6 +1319,17 @@ def _absorb_sample(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt:
     var_eta = c.accel_var_density / dt
     var_xi = (c.aided_velocity_var if aided else c.velocity_var) * (1.0 - gamma * gamma)
     b0, b1 = g0 / dt, g1 / dt
+    if c.accumulate and not direct:  # between updates (``direct``: P is up to date)
+        noise = (
+            g0 * g0 * var_eta + b0 * b0 * var_xi,
+            g0 * g1 * var_eta + b0 * b1 * var_xi,
+            b0 * var_xi,
+            g1 * g1 * var_eta + b1 * b1 * var_xi,
+            b1 * var_xi,
+            var_xi,
+        )
+        _accumulate_absorb(s, c, (p00, p01, a02, p10, p11, a12, gamma), noise, g0, g1, aided)
+        return
     n = c.n_state
     P = s.P
     for axis in range(3):
@@ -1097,6 +1380,22 @@ def _times3(
 
 
 @kernel
+def _aided_coupling(s: StateRecord, c: CoefficientsRecord) -> np.ndarray:
+    """w_aid = M = [a]× W: how the attitude error moves an aided sample (in the world)."""
+    M = s.w_aid
+    so3.hat_into(s.linear_accel, M)
+    if c.error != ERROR_LEFT:
+        R = s.w_R_tilt
+        so3.matrix_from_quat_into(s.q, R)
+        for i in range(3):
+            r0, r1, r2 = M[i, 0], M[i, 1], M[i, 2]
+            for j in range(3):
+                s.w_m33[i, j] = r0 * R[0, j] + r1 * R[1, j] + r2 * R[2, j]
+        M[:, :] = s.w_m33
+    return M
+
+
+@kernel
 def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: float) -> None:
     """The attitude error's part in an aided sample: [ε; ḟ] += [Γ₀; Γ₁] M δθ.
 
@@ -1108,16 +1407,7 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
     not change), then columns. This correlation is what lets the gravity
     update see heading in turns, as a GPS-aided INS does.
     """
-    M = s.w_aid
-    so3.hat_into(s.linear_accel, M)
-    if c.error != ERROR_LEFT:
-        R = s.w_R_tilt
-        so3.matrix_from_quat_into(s.q, R)
-        for i in range(3):
-            r0, r1, r2 = M[i, 0], M[i, 1], M[i, 2]
-            for j in range(3):
-                s.w_m33[i, j] = r0 * R[0, j] + r1 * R[1, j] + r2 * R[2, j]
-        M[:, :] = s.w_m33
+    M = _aided_coupling(s, c)
     n = c.n_state
     P = s.P
     skew = c.error == ERROR_LEFT  # M = [a]×
@@ -1155,7 +1445,7 @@ def _take_accel(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: fl
         if s.filters_primed == 2:  # primed with this very sample
             s.filters_primed = 1
         else:
-            _absorb_sample(s, c, accel, dt)
+            _absorb_sample(s, c, accel, dt, False)
     return True
 
 
@@ -1167,6 +1457,7 @@ def accel_update(
     robustness checks; sets the step's diagnostics."""
     if not _take_accel(s, c, accel, dt):
         return
+    _flush_pending(s, c)
     lowpass = c.accel_lowpass_time > 0.0
     aided = _vector_is_finite(s.linear_accel)
     if lowpass:
@@ -1319,6 +1610,7 @@ def turn_heading(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
     first field sample): the estimate's error then has mean ψ about the
     vertical and the same spread, so this is a correction by ψ and its reset.
     """
+    _flush_pending(s, c)
     _heading_step(s, c, psi)
     _apply_correction(s, c, s.w_dx)
 
@@ -1421,6 +1713,7 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
         s.flags |= _MAG_BETWEEN_UPDATES  # (its own schedule: the field may come at its own rate)
         return
     _clear_heading_report(s)
+    _flush_pending(s, c)
     m = s.w_mag
     magnetic.calibrate_into(mag, c.mag_offsets, c.mag_soft_iron, m)
     azimuth, dip, norm = magnetic.field_geometry(s.q, m, s.w_u3)
@@ -1590,6 +1883,7 @@ def _restart_rest_mean(s: StateRecord) -> None:
 def _zero_rate_update(s: StateRecord, c: CoefficientsRecord) -> None:
     """At rest the gyro measures its bias: y = ω̄_m − b̄, H = [0 I 0], V = σ_g²/T + σ_rest²,
     ω̄_m the mean of the samples since the last update (over T), all at rest."""
+    _flush_pending(s, c)
     n = c.n_state
     var = c.gyro_var_density / s.rest_sum_time + c.rest_rate_var
     P = s.P
@@ -1723,6 +2017,7 @@ def _step_sample(
     if dt > c.max_dt:
         _clear_gravity_report(s)
         _clear_heading_report(s)
+        _flush_pending(s, c)
         # Nothing is known of the motion in the gap: re-align tilt from this
         # sample's accelerometer, keep heading and bias (which drift slowly).
         if _accel_usable_for_alignment(c, accel):
@@ -1736,6 +2031,8 @@ def _step_sample(
         else:
             s.initialised = 0
             s.flags = _GAP_REALIGNED | _NOT_INITIALISED
+        if _vector_is_finite(mag):
+            s.flags |= _MAG_SET_ASIDE
         return
     predict(s, c, gyro, dt)
     s.t = t
@@ -1754,6 +2051,8 @@ def _step_sample(
         _clear_gravity_report(s)
         _clear_heading_report(s)
         _realign_when_calm(s, c, t, gyro, accel, dt)
+        if _vector_is_finite(mag):
+            s.flags |= _MAG_SET_ASIDE
         return
     at_rest = _detect_rest(s, c, gyro, accel, dt)
     if t - s.t_update < c.update_interval - 0.5 * dt:
@@ -1794,6 +2093,7 @@ def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
     var = _heading_variance(s, c)
     if not var > _MAX_HEADING_VAR:
         return
+    _flush_pending(s, c)
     f = math.sqrt(_MAX_HEADING_VAR / var)
     _attitude_covariance_to_world(s, c)
     for j in range(c.n_state):
@@ -1832,6 +2132,8 @@ def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
     # are exactly zero until the low-pass holds a sample: semi-definite then.)
     s.health_checks += 1
     m = n if s.filters_primed and s.health_checks % _FULL_CHECK_EVERY == 0 else N_ERROR
+    if m > N_ERROR:
+        _flush_pending(s, c)
     return is_positive_definite(s.P[:m, :m], s.w_T[:m, :m])
 
 

@@ -62,6 +62,7 @@ from mavest.service.pipeline import (
     _FIXED_WING_TYPES,
     _HEADING_EVENTS,
     _HEALTH_EVENTS,
+    MAG_NOT_TAKEN,
     MAG_WAIT,
     MAX_ACCEL,
     MAX_GYRO,
@@ -249,9 +250,10 @@ class _Steps:
         self.euler = bulk.euler_rows(series.q)
         self.bias = series.bias
         self.flags = series.flags
+        self.usable_mag = usable_mag
         self.mag_used = series.mag_used & usable_mag
         # the usable readings the filter took (as Pipeline.on_message counts them)
-        self.taken_mag = usable_mag & (series.flags & StepFlags.MAG_BETWEEN_UPDATES == 0)
+        self.taken_mag = usable_mag & (series.flags & MAG_NOT_TAKEN == 0)
         self.gyro = gyro  # for the answers' rates
 
     def before(self, row: int) -> slice:
@@ -873,7 +875,8 @@ class BulkFeed:
         if stats.first_t is None:
             stats.first_t = float(t[kept[0]])
         stats.last_t = float(t[kept[-1]])
-        stats.mag_samples += int(np.count_nonzero(steps.taken_mag[first:last][kept]))
+        stats.mag_usable += int(np.count_nonzero(steps.usable_mag[first:last][kept]))
+        stats.mag_taken += int(np.count_nonzero(steps.taken_mag[first:last][kept]))
         stats.mag_used += int(np.count_nonzero(steps.mag_used[first:last][kept]))
         vehicle.last_t = stats.last_t
         return kept

@@ -100,9 +100,10 @@ class StreamStats:
     clip_realigned: int = 0  # calm again after a clipped gyro: tilt re-aligned
     reboots: int = 0
     wraps: int = 0
-    # samples that carried a usable magnetometer reading the filter took (the rest came
-    # within the update interval of the last one taken: EstimatorConfig.update_rate)
-    mag_samples: int = 0
+    mag_usable: int = 0  # samples estimated with a usable magnetometer reading
+    # of those, the readings the filter took (the rest came within the update interval of
+    # the last one taken: EstimatorConfig.update_rate)
+    mag_taken: int = 0
     mag_used: int = 0  # of those, the ones that corrected (or set) heading
     gps_aided: int = 0  # samples with the vehicle's acceleration from GPS removed
     airspeed_aided: int = 0  # samples with the centripetal term from airspeed removed
@@ -489,9 +490,11 @@ class Pipeline:
         if stats.first_t is None:
             stats.first_t = t
         stats.last_t = t
-        if mag is not None and not flags & StepFlags.MAG_BETWEEN_UPDATES:
-            stats.mag_samples += 1
-            stats.mag_used += estimate.mag_used
+        if mag is not None:
+            stats.mag_usable += 1
+            if not flags & MAG_NOT_TAKEN:
+                stats.mag_taken += 1
+                stats.mag_used += estimate.mag_used
         if flags & _HEADING_EVENTS or not stream.heading_source_reported:
             _report_heading(stream, flags)
         vehicle.last_t = t
@@ -683,6 +686,10 @@ def _usable_mag(mag: tuple[float, float, float] | None) -> tuple[float, float, f
         return None
     return mag
 
+
+# the magnetometer readings the filter did not take (the rest it took: a magnetometer update
+# looked at them)
+MAG_NOT_TAKEN = StepFlags.MAG_BETWEEN_UPDATES | StepFlags.MAG_SET_ASIDE
 
 _HEALTH_EVENTS = (
     StepFlags.TILT_REOPENED

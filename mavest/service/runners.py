@@ -559,11 +559,11 @@ def format_summary(report: RunReport) -> str:
             )
         )
         lines.append("    filter health: " + (", ".join(health) if health else "no resets"))
-        if stats.mag_samples:
-            used = 100.0 * stats.mag_used / stats.mag_samples
+        if stats.mag_taken:
+            used = 100.0 * stats.mag_used / stats.mag_taken
             lines.append(
                 f"    heading from the magnetometer (9-D): {used:.1f} % used of the "
-                f"{stats.mag_samples} readings taken"
+                f"{stats.mag_taken} readings taken (of {stats.mag_usable} usable)"
             )
         else:
             lines.append("    no magnetometer: heading free (6-D), yaw drifts")
