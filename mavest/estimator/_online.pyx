@@ -184,16 +184,18 @@ cdef class Estimate:
 
     @property
     def innovation(self):
-        """(2,) gravity residual before the update, rad."""
+        """(2,) gravity residual before the update, rad (between updates: the last update's)."""
         return _view(self, ROW_INNOVATION, 1, _TWO)
 
     @property
     def nis(self):
-        """Normalised innovation squared (χ², 2 dof); NaN if no measurement."""
+        """Normalised innovation squared (χ², 2 dof); NaN if no measurement (between
+        updates: the last update's)."""
         return self._row[ROW_NIS]
 
     @property
     def accel_used(self):
+        """This sample's accelerometer was a gravity update (or set tilt)."""
         return self._row[ROW_ACCEL_USED] != 0.0
 
     @property
@@ -212,7 +214,8 @@ cdef class Estimate:
 
     @property
     def heading_innovation(self):
-        """Magnetometer azimuth − declination, rad; NaN if none."""
+        """Magnetometer azimuth − declination, rad; NaN if none (between the magnetometer's
+        updates: the last one's)."""
         return self._row[ROW_HEADING_INNOVATION]
 
     @property

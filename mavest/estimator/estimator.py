@@ -110,6 +110,7 @@ class EstimateSeries:
     q: np.ndarray  # (N, 4)
     bias: np.ndarray  # (N, 3)
     cov: np.ndarray  # (N, 6, 6)
+    # what the last gravity update measured (at a BETWEEN_UPDATES sample: the one before)
     innovation: np.ndarray  # (N, 2)
     nis: np.ndarray  # (N,)
     accel_used: np.ndarray  # (N,) bool

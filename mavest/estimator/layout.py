@@ -198,9 +198,10 @@ STATE_DTYPE = np.dtype(
         # low-passed specific force f̄ and its rate ḟ, estimated world frame
         ("accel_world_lp", np.float64, (2, 3)),
         ("lowpass_time", np.float64),  # time averaged since the low-pass started, s
-        # the low-pass's Φ₀₀, Φ₀₁, Φ₁₀, Φ₁₁, Γ₀, Γ₁ and the velocity's γ for the Δt below
-        ("lowpass_step", np.float64, 7),
-        ("lowpass_step_dt", np.float64),
+        # what depends on Δt alone, for the Δt below: the low-pass's Φ₀₀, Φ₀₁, Φ₁₀, Φ₁₁,
+        # Γ₀, Γ₁, the velocity's γ and the rest detector's α
+        ("step_coefficients", np.float64, 8),
+        ("step_coefficients_dt", np.float64),
         ("rest_gyro_lp", np.float64, 3),  # low-passed gyro and accel of the rest detector
         ("rest_accel_lp", np.float64, 3),
         ("rest_time", np.float64),  # how long the rest criteria have held, s
@@ -386,7 +387,7 @@ def new_state(coefficients: np.ndarray) -> np.ndarray:
     s["t"] = -np.inf
     s["t_accel"] = -np.inf
     s["t_update"] = -np.inf
-    s["lowpass_step_dt"] = np.nan
+    s["step_coefficients_dt"] = np.nan
     s["nis"] = np.nan
     s["heading_innovation"] = np.nan
     s["heading_nis"] = np.nan

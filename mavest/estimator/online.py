@@ -347,16 +347,18 @@ class Estimate:
 
     @property
     def innovation(self) -> np.ndarray:
-        """(2,) gravity residual before the update, rad."""
+        """(2,) gravity residual before the update, rad (between updates: the last update's)."""
         return self._row[_INNOVATION]
 
     @property
     def nis(self) -> float:
-        """Normalised innovation squared (χ², 2 dof); NaN if no measurement."""
+        """Normalised innovation squared (χ², 2 dof); NaN if no measurement (between
+        updates: the last update's)."""
         return float(self._row[ROW_NIS])
 
     @property
     def accel_used(self) -> bool:
+        """This sample's accelerometer was a gravity update (or set tilt)."""
         return bool(self._row[ROW_ACCEL_USED])
 
     @property
@@ -375,7 +377,8 @@ class Estimate:
 
     @property
     def heading_innovation(self) -> float:
-        """Magnetometer azimuth − declination, rad; NaN if none."""
+        """Magnetometer azimuth − declination, rad; NaN if none (between the magnetometer's
+        updates: the last one's)."""
         return float(self._row[ROW_HEADING_INNOVATION])
 
     @property

@@ -1274,6 +1274,27 @@ def _lowpass_step(
     return p00, p01, p10, p11, 1.0 - p00, -p10
 
 
+# Two Δt within this (relative) share one set of step coefficients. Timestamps
+# differenced in floating point jitter in their last bits (k/1000 − (k−1)/1000
+# takes 15 values over a minute), and an exact cache missed two samples in three;
+# the coefficients' own change over 1e-9 of Δt is far below anything physical.
+_SAME_DT = 1e-9
+
+
+@kernel
+def _step_coefficients(s: StateRecord, c: CoefficientsRecord, dt: float) -> np.ndarray:
+    """The coefficients that depend on Δt alone (``s.step_coefficients``), computed again
+    only when Δt changes: a steady rate computes them once."""
+    out = s.step_coefficients
+    if not abs(dt - s.step_coefficients_dt) <= _SAME_DT * dt:  # (also NaN: the first)
+        if c.accel_lowpass_time > 0.0:
+            out[0], out[1], out[2], out[3], out[4], out[5] = _lowpass_step(c, dt)
+            out[6] = math.exp(-dt / c.velocity_time)
+        out[7] = 1.0 - math.exp(-dt / c.rest_filter_time)
+        s.step_coefficients_dt = dt
+    return out
+
+
 @kernel
 def _absorb_sample(
     s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float, direct: bool
@@ -1298,11 +1319,7 @@ def _absorb_sample(
         for i in range(3):
             s.w_v3[i] -= s.linear_accel[i]
     lp = s.accel_world_lp
-    step = s.lowpass_step
-    if dt != s.lowpass_step_dt:  # else the last sample's (a steady rate: most samples)
-        step[0], step[1], step[2], step[3], step[4], step[5] = _lowpass_step(c, dt)
-        step[6] = math.exp(-dt / c.velocity_time)
-        s.lowpass_step_dt = dt
+    step = _step_coefficients(s, c, dt)
     if s.lowpass_time < c.accel_lowpass_time:
         beta = s.lowpass_time / (s.lowpass_time + dt)
         p00, p01, p10, p11, g0, g1 = beta, 0.0, 0.0, 1.0, 1.0 - beta, 0.0
@@ -1847,7 +1864,7 @@ def _detect_rest(
         s.rest_time = 0.0
         _restart_rest_mean(s)
         return False
-    alpha = 1.0 - math.exp(-dt / c.rest_filter_time)
+    alpha = _step_coefficients(s, c, dt)[7]
     dev_g = 0.0
     dev_a = 0.0
     for i in range(3):
