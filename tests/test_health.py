@@ -189,8 +189,8 @@ def test_turning_flights_without_aiding_may_reopen_tilt_but_never_diverge(seed: 
     # the hardest case for the accelerometer: coordinated turns with their linear
     # acceleration not removed (no GPS); in these two flights a turn lasts about as
     # long as accel_max_disturbance_time, so tilt may be reopened (measured: once, at
-    # 42.5 s, and none; a few ULPs elsewhere have made it once in each), which is not a
-    # divergence. Tilt error peaks at 42.9° and 36.0°, and comes back. (Over seeds
+    # 44.1 s, and none; a few ULPs elsewhere have made it once in each), which is not a
+    # divergence. Tilt error peaks at 42.7° and 37.3°, and comes back. (Over seeds
     # 1–12 an iteration tolerance of 1e-5 rad instead of 1e-6 re-initialised one or two:
     # the case is on a knife edge.)
     flight = fly(120.0, 200.0, seed)
