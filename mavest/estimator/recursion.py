@@ -1336,15 +1336,14 @@ def _absorb_sample(
     var_eta = c.accel_var_density / dt
     var_xi = (c.aided_velocity_var if aided else c.velocity_var) * (1.0 - gamma * gamma)
     b0, b1 = g0 / dt, g1 / dt
+    # the step's own noise b_η b_ηᵀ var η + b_ξ b_ξᵀ var ξ on (ε, ḟ, v): its upper triangle
+    n00 = g0 * g0 * var_eta + b0 * b0 * var_xi
+    n01 = g0 * g1 * var_eta + b0 * b1 * var_xi
+    n02 = b0 * var_xi
+    n11 = g1 * g1 * var_eta + b1 * b1 * var_xi
+    n12 = b1 * var_xi
     if c.accumulate and not direct:  # between updates (``direct``: P is up to date)
-        noise = (
-            g0 * g0 * var_eta + b0 * b0 * var_xi,
-            g0 * g1 * var_eta + b0 * b1 * var_xi,
-            b0 * var_xi,
-            g1 * g1 * var_eta + b1 * b1 * var_xi,
-            b1 * var_xi,
-            var_xi,
-        )
+        noise = (n00, n01, n02, n11, n12, var_xi)
         _accumulate_absorb(s, c, (p00, p01, a02, p10, p11, a12, gamma), noise, g0, g1, aided)
         return
     n = c.n_state
@@ -1363,15 +1362,14 @@ def _absorb_sample(
             P[i, e] = p00 * pe + p01 * pd + a02 * pv
             P[i, d] = p10 * pe + p11 * pd + a12 * pv
             P[i, v] = gamma * pv
-        # + b_η b_ηᵀ var η + b_ξ b_ξᵀ var ξ
-        P[e, e] += g0 * g0 * var_eta + b0 * b0 * var_xi
-        P[e, d] += g0 * g1 * var_eta + b0 * b1 * var_xi
-        P[d, e] += g0 * g1 * var_eta + b0 * b1 * var_xi
-        P[d, d] += g1 * g1 * var_eta + b1 * b1 * var_xi
-        P[e, v] += b0 * var_xi
-        P[v, e] += b0 * var_xi
-        P[d, v] += b1 * var_xi
-        P[v, d] += b1 * var_xi
+        P[e, e] += n00
+        P[e, d] += n01
+        P[d, e] += n01
+        P[d, d] += n11
+        P[e, v] += n02
+        P[v, e] += n02
+        P[d, v] += n12
+        P[v, d] += n12
         P[v, v] += var_xi
     if aided:
         _couple_aided_sample(s, c, g0, g1)
@@ -1996,6 +1994,14 @@ def _clear_heading_report(s: StateRecord) -> None:
 
 
 @kernel
+def _set_aside_mag(s: StateRecord, mag: np.ndarray) -> None:
+    """The sample's magnetometer reading, if it has one, is not looked at (the attitude
+    it would correct is not known): say so."""
+    if _vector_is_finite(mag):
+        s.flags |= _MAG_SET_ASIDE
+
+
+@kernel
 def _step_sample(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -2048,8 +2054,7 @@ def _step_sample(
         else:
             s.initialised = 0
             s.flags = _GAP_REALIGNED | _NOT_INITIALISED
-        if _vector_is_finite(mag):
-            s.flags |= _MAG_SET_ASIDE
+        _set_aside_mag(s, mag)
         return
     predict(s, c, gyro, dt)
     s.t = t
@@ -2068,8 +2073,7 @@ def _step_sample(
         _clear_gravity_report(s)
         _clear_heading_report(s)
         _realign_when_calm(s, c, t, gyro, accel, dt)
-        if _vector_is_finite(mag):
-            s.flags |= _MAG_SET_ASIDE
+        _set_aside_mag(s, mag)
         return
     at_rest = _detect_rest(s, c, gyro, accel, dt)
     if t - s.t_update < c.update_interval - 0.5 * dt:
