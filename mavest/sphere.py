@@ -23,21 +23,17 @@ import math
 import numpy as np
 
 from mavest import so3
-from mavest._jit import kernel
+from mavest._jit import inlined_kernel, kernel
 
 # Below this ‖h × z‖ the closed forms' divisions are replaced by their limits.
 _SMALL_SINE = 1e-3
 
 
-@kernel
-def tangent_basis_into(v: np.ndarray, out: np.ndarray) -> None:
-    """Columns of ``out`` (3×2): an orthonormal basis of the plane ⊥ the unit vector v.
-
-    (b1, b2, v) is right-handed. The helper axis is the coordinate axis least
-    aligned with v, so the construction never divides by a small number.
-    """
+@inlined_kernel
+def _first_tangent(v: np.ndarray) -> tuple[float, float, float]:
+    """b1 = e × v / ‖e × v‖ for the coordinate axis e least aligned with the unit vector
+    v, so the construction never divides by a small number."""
     ax, ay, az = abs(v[0]), abs(v[1]), abs(v[2])
-    # b1 = e × v / ‖e × v‖ for the coordinate axis e least aligned with v
     if ax <= ay and ax <= az:  # e = x
         b1x, b1y, b1z = 0.0, -v[2], v[1]
     elif ay <= az:  # e = y
@@ -45,7 +41,16 @@ def tangent_basis_into(v: np.ndarray, out: np.ndarray) -> None:
     else:  # e = z
         b1x, b1y, b1z = -v[1], v[0], 0.0
     n = math.sqrt(b1x * b1x + b1y * b1y + b1z * b1z)
-    b1x, b1y, b1z = b1x / n, b1y / n, b1z / n
+    return b1x / n, b1y / n, b1z / n
+
+
+@kernel
+def tangent_basis_into(v: np.ndarray, out: np.ndarray) -> None:
+    """Columns of ``out`` (3×2): an orthonormal basis of the plane ⊥ the unit vector v.
+
+    (b1, b2, v) is right-handed, b1 from :func:`_first_tangent`.
+    """
+    b1x, b1y, b1z = _first_tangent(v)
     out[0, 0], out[1, 0], out[2, 0] = b1x, b1y, b1z
     # b2 = v × b1 is unit and completes the right-handed triad
     out[0, 1] = v[1] * b1z - v[2] * b1y
@@ -89,9 +94,8 @@ def log_into(h: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
     elif c > 0.0:
         out[0], out[1], out[2] = 0.0, 0.0, 0.0
     else:
-        basis = np.empty((3, 2))
-        tangent_basis_into(h, basis)
-        out[0], out[1], out[2] = math.pi * basis[0, 0], math.pi * basis[1, 0], math.pi * basis[2, 0]
+        b1x, b1y, b1z = _first_tangent(h)
+        out[0], out[1], out[2] = math.pi * b1x, math.pi * b1y, math.pi * b1z
 
 
 @kernel

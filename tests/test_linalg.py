@@ -138,3 +138,31 @@ def test_the_compiled_cache_is_keyed_on_every_module_that_compiles_kernels() -> 
     assert checked >= 10 and callbacks >= 1
     assert not _jit.compiles_kernels(b"from mavest._jit import cache_is_warm\n")
     assert _jit.compiles_kernels(b"from mavest._jit import callback_kernel\n")
+    assert _jit.compiles_kernels(b"from mavest._jit import inplace_inlined_kernel\n")
+    assert _jit.compiles_kernels(b"from mavest._jit import inplace_kernel\n")
+
+
+def test_an_inplace_kernel_cannot_allocate() -> None:
+    """The filter's kernels run without numba's runtime (``inplace_kernel``): what
+    allocates there must fail to compile, not run with a reference count missing."""
+    import numba
+
+    from mavest._jit import inplace_kernel
+
+    if numba.config.DISABLE_JIT:
+        pytest.skip("NUMBA_DISABLE_JIT: nothing is compiled")
+
+    @inplace_kernel
+    def fills(out: np.ndarray) -> None:
+        for i in range(out.shape[0]):
+            out[i] = 1.0
+
+    @inplace_kernel
+    def allocates(n: int) -> float:
+        return np.zeros(n).sum()
+
+    out = np.zeros(3)
+    fills(out)
+    assert out.tolist() == [1.0, 1.0, 1.0]
+    with pytest.raises(numba.core.errors.TypingError):
+        allocates(3)

@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from mavest import so3
-from mavest._jit import kernel
+from mavest._jit import inplace_kernel
 from mavest.estimator.layout import (
     CHART_EXP,
     ERROR_LEFT,
@@ -38,7 +38,7 @@ from mavest.estimator.layout import (
 )
 
 
-@kernel
+@inplace_kernel
 def chart_quat_into(delta: np.ndarray, chart: int, out: np.ndarray) -> None:
     """The error rotation chart(δ) as a quaternion."""
     if chart == CHART_EXP:
@@ -56,7 +56,7 @@ def chart_quat_into(delta: np.ndarray, chart: int, out: np.ndarray) -> None:
     out[3] = sz * c
 
 
-@kernel
+@inplace_kernel
 def chart_log_into(e: np.ndarray, chart: int, out: np.ndarray) -> None:
     """chart⁻¹ of the error rotation e (a unit quaternion).
 
@@ -81,7 +81,7 @@ def chart_log_into(e: np.ndarray, chart: int, out: np.ndarray) -> None:
     out[2] = psi
 
 
-@kernel
+@inplace_kernel
 def retract_into(
     q_ref: np.ndarray,
     delta: np.ndarray,
@@ -99,7 +99,7 @@ def retract_into(
     so3.quat_normalize_into(out)
 
 
-@kernel
+@inplace_kernel
 def local_into(
     q: np.ndarray,
     q_ref: np.ndarray,
@@ -116,7 +116,7 @@ def local_into(
     chart_log_into(work4, chart, out)
 
 
-@kernel
+@inplace_kernel
 def reset_jacobian_into(
     delta: np.ndarray,
     error: int,

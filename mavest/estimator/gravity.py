@@ -20,11 +20,11 @@ from __future__ import annotations
 import numpy as np
 
 from mavest import so3, sphere
-from mavest._jit import kernel
+from mavest._jit import inplace_kernel
 from mavest.estimator.layout import ERROR_LEFT
 
 
-@kernel
+@inplace_kernel
 def residual_into(
     q: np.ndarray,
     z: np.ndarray,
@@ -42,7 +42,7 @@ def residual_into(
     r[1] = Bz[0, 1] * rho[0] + Bz[1, 1] * rho[1] + Bz[2, 1] * rho[2]
 
 
-@kernel
+@inplace_kernel
 def jacobian_into(
     R: np.ndarray,
     h: np.ndarray,

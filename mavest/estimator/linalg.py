@@ -10,10 +10,26 @@ import math
 
 import numpy as np
 
-from mavest._jit import inlined_kernel, kernel
+from mavest._jit import inplace_inlined_kernel, inplace_kernel
 
 
-@inlined_kernel
+@inplace_inlined_kernel
+def copy_into(out: np.ndarray, v: np.ndarray) -> None:
+    """out[:] = v, element by element: a slice assignment may copy v first, which
+    needs numba's allocator, and the filter's kernels run without it."""
+    for i in range(out.shape[0]):
+        out[i] = v[i]
+
+
+@inplace_inlined_kernel
+def copy_matrix_into(out: np.ndarray, M: np.ndarray) -> None:
+    """out[:, :] = M (see :func:`copy_into`)."""
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            out[i, j] = M[i, j]
+
+
+@inplace_inlined_kernel
 def symmetrise(P: np.ndarray) -> None:
     """P ← (P + Pᵀ)/2, in place."""
     n = P.shape[0]
@@ -24,7 +40,7 @@ def symmetrise(P: np.ndarray) -> None:
             P[j, i] = m
 
 
-@kernel
+@inplace_kernel
 def cholesky_into(A: np.ndarray, L: np.ndarray) -> bool:
     """Lower-triangular L with L Lᵀ = A; False (L undefined) if A is not positive definite."""
     n = A.shape[0]
@@ -46,7 +62,7 @@ def cholesky_into(A: np.ndarray, L: np.ndarray) -> bool:
     return True
 
 
-@kernel
+@inplace_kernel
 def is_positive_definite(A: np.ndarray, work: np.ndarray) -> bool:
     """Whether the symmetric A (its lower triangle read) is positive definite.
 
@@ -73,7 +89,7 @@ def is_positive_definite(A: np.ndarray, work: np.ndarray) -> bool:
     return True
 
 
-@kernel
+@inplace_kernel
 def inverse_2x2_into(S: np.ndarray, out: np.ndarray) -> float:
     """out = S⁻¹ for a 2×2 matrix; returns det S (≤ 0 or NaN: not usable)."""
     det = S[0, 0] * S[1, 1] - S[0, 1] * S[1, 0]
@@ -84,7 +100,7 @@ def inverse_2x2_into(S: np.ndarray, out: np.ndarray) -> float:
     return det
 
 
-@kernel
+@inplace_kernel
 def inverse_3x3_into(S: np.ndarray, out: np.ndarray) -> float:
     """out = S⁻¹ by cofactors; returns det S (≤ 0 or NaN: not usable for an SPD S)."""
     c00 = S[1, 1] * S[2, 2] - S[1, 2] * S[2, 1]
@@ -103,7 +119,7 @@ def inverse_3x3_into(S: np.ndarray, out: np.ndarray) -> float:
     return det
 
 
-@inlined_kernel
+@inplace_inlined_kernel
 def left_multiply_rows3(P: np.ndarray, r0: int, M: np.ndarray) -> None:
     """P[r0:r0+3, :] ← M P[r0:r0+3, :] for a 3×3 M, in place.
 
@@ -120,7 +136,7 @@ def left_multiply_rows3(P: np.ndarray, r0: int, M: np.ndarray) -> None:
         P[r0 + 2, j] = m20 * p0 + m21 * p1 + m22 * p2
 
 
-@inlined_kernel
+@inplace_inlined_kernel
 def right_multiply_cols3(P: np.ndarray, c0: int, M: np.ndarray) -> None:
     """P[:, c0:c0+3] ← P[:, c0:c0+3] Mᵀ for a 3×3 M, in place (as :func:`left_multiply_rows3`)."""
     m00, m01, m02 = M[0, 0], M[0, 1], M[0, 2]
@@ -133,7 +149,7 @@ def right_multiply_cols3(P: np.ndarray, c0: int, M: np.ndarray) -> None:
         P[i, c0 + 2] = m20 * p0 + m21 * p1 + m22 * p2
 
 
-@inlined_kernel
+@inplace_inlined_kernel
 def gain_update(P: np.ndarray, K: np.ndarray, C: np.ndarray, S: np.ndarray, m: int) -> None:
     """P ← P − K Cᵀ − C Kᵀ + K S Kᵀ: the covariance after a correction K·r with any gain.
 

@@ -89,7 +89,7 @@ import math
 import numpy as np
 
 from mavest import so3
-from mavest._jit import kernel
+from mavest._jit import inplace_kernel, kernel
 from mavest.estimator.layout import ERROR_LEFT
 
 # Below this ratio of horizontal to total field the azimuth says nothing (at a
@@ -97,13 +97,13 @@ from mavest.estimator.layout import ERROR_LEFT
 MIN_HORIZONTAL_FRACTION = 0.05
 
 
-@kernel
+@inplace_kernel
 def wrap(angle: float) -> float:
     """angle wrapped to [−π, π)."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
-@kernel
+@inplace_kernel
 def calibrate_into(
     raw: np.ndarray, offsets: np.ndarray, soft_iron: np.ndarray, out: np.ndarray
 ) -> None:
@@ -120,7 +120,7 @@ def calibrate_into(
         out[i] = soft_iron[i, 0] * x + soft_iron[i, 1] * y + soft_iron[i, 2] * z
 
 
-@kernel
+@inplace_kernel
 def field_geometry(q: np.ndarray, m: np.ndarray, u: np.ndarray) -> tuple[float, float, float]:
     """(azimuth, dip, norm) of the body field m seen in the estimated world frame.
 
@@ -136,7 +136,7 @@ def field_geometry(q: np.ndarray, m: np.ndarray, u: np.ndarray) -> tuple[float, 
     return math.atan2(u[1], u[0]), dip, norm
 
 
-@kernel
+@inplace_kernel
 def heading_jacobians_into(
     q: np.ndarray,
     dip: float,
@@ -172,7 +172,7 @@ def heading_jacobians_into(
         H_heading[j] = f0 * R[0, j] + f1 * R[1, j] + h2 * R[2, j]
 
 
-@kernel
+@kernel  # (it allocates the discarded term: not for the filter's own kernels)
 def heading_jacobian_into(
     q: np.ndarray, dip: float, declination: float, error: int, R: np.ndarray, H: np.ndarray
 ) -> None:

@@ -69,7 +69,7 @@ import math
 import numpy as np
 
 from mavest import so3, sphere
-from mavest._jit import inlined_kernel, kernel
+from mavest._jit import inplace_inlined_kernel, inplace_kernel
 from mavest.estimator import gravity, magnetic
 from mavest.estimator.charts import local_into, reset_jacobian_into, retract_into
 from mavest.estimator.layout import (
@@ -84,6 +84,8 @@ from mavest.estimator.layout import (
 )
 from mavest.estimator.linalg import (
     cholesky_into,
+    copy_into,
+    copy_matrix_into,
     gain_update,
     inverse_3x3_into,
     is_positive_definite,
@@ -137,26 +139,26 @@ _MAG_SET_ASIDE = StepFlags.MAG_SET_ASIDE
 # --------------------------------------------------------------------------
 
 
-@kernel
+@inplace_kernel
 def _vector_is_finite(v: np.ndarray) -> bool:
     return math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(v[2])
 
 
-@kernel
+@inplace_kernel
 def _set_identity(M: np.ndarray) -> None:
     for i in range(M.shape[0]):
         for j in range(M.shape[1]):
             M[i, j] = 1.0 if i == j else 0.0
 
 
-@kernel
+@inplace_kernel
 def _vertical_in_body(s: StateRecord) -> tuple[float, float, float]:
     """R̄ᵀ e₃: the world vertical in the body frame (the third row of R̄)."""
     w, x, y, z = s.q[0], s.q[1], s.q[2], s.q[3]
     return 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
 
 
-@kernel
+@inplace_kernel
 def _vertical_in_error_frame(s: StateRecord, c: CoefficientsRecord) -> tuple[float, float, float]:
     """The world vertical in the attitude error's frame: e₃ (left error), R̄ᵀ e₃ (right)."""
     if c.error == ERROR_LEFT:
@@ -164,7 +166,7 @@ def _vertical_in_error_frame(s: StateRecord, c: CoefficientsRecord) -> tuple[flo
     return _vertical_in_body(s)
 
 
-@kernel
+@inplace_kernel
 def _gravity_leaves_heading(s: StateRecord) -> bool:
     """Whether the gravity update considers heading (:func:`_drop_heading_gain`).
 
@@ -176,7 +178,7 @@ def _gravity_leaves_heading(s: StateRecord) -> bool:
     return s.t_mag_used > -math.inf and not _vector_is_finite(s.linear_accel)
 
 
-@kernel
+@inplace_kernel
 def _drop_heading_gain(s: StateRecord, c: CoefficientsRecord, K: np.ndarray, m: int) -> None:
     """K's attitude rows (n×m) lose their component about the world vertical.
 
@@ -199,7 +201,7 @@ def _drop_heading_gain(s: StateRecord, c: CoefficientsRecord, K: np.ndarray, m: 
         K[2, a] -= v2 * along
 
 
-@kernel
+@inplace_kernel
 def _transform_blocks(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -222,7 +224,7 @@ def _transform_blocks(
             right_multiply_cols3(P, block, W)
 
 
-@kernel
+@inplace_kernel
 def _world_move_into(
     q_new: np.ndarray, q_old: np.ndarray, W: np.ndarray, work4: np.ndarray
 ) -> None:
@@ -235,7 +237,7 @@ def _world_move_into(
     so3.matrix_from_quat_into(work4, W)
 
 
-@kernel
+@inplace_kernel
 def _reset_covariance(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
     """P ← T P Tᵀ, T = blockdiag(T_θ(δ̂θ), I, W, W): the reset of the covariance.
 
@@ -249,14 +251,14 @@ def _reset_covariance(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> 
     _transform_blocks(s, c, s.P[:n, :n], s.w_m33, s.w_W, True)
 
 
-@kernel
+@inplace_kernel
 def _move_nominal(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
     """x ← x ⊞ δx (attitude through the chart, bias additively).
 
     The estimated world frame moves with the attitude (by q⁺ ⊗ q⁻¹), so the
     world-frame low-pass of the specific force is rotated along.
     """
-    s.w_p4[:] = s.q
+    copy_into(s.w_p4, s.q)
     retract_into(s.w_p4, dx[:3], c.error, c.chart, s.q, s.w_q4)
     for i in range(3):
         s.b[i] += dx[3 + i]
@@ -266,14 +268,14 @@ def _move_nominal(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None
             so3.quat_rotate_into(s.w_q4, s.accel_world_lp[stage], s.accel_world_lp[stage])
 
 
-@kernel
+@inplace_kernel
 def _apply_correction(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
     """The reset step: move the error mean δ̂ into the nominal and transform P."""
     _move_nominal(s, c, dx)
     _reset_covariance(s, c, dx)
 
 
-@kernel
+@inplace_kernel
 def _error_frame_from_world(s: StateRecord, c: CoefficientsRecord) -> None:
     """w_m33 = the matrix taking a world-frame rotation vector to the error's frame."""
     if c.error == ERROR_LEFT:
@@ -285,7 +287,7 @@ def _error_frame_from_world(s: StateRecord, c: CoefficientsRecord) -> None:
                 s.w_m33[i, j] = s.w_R[j, i]  # Rᵀ: world → body
 
 
-@kernel
+@inplace_kernel
 def _set_attitude_covariance_world(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -311,7 +313,7 @@ def _set_attitude_covariance_world(
     _attitude_covariance_from_world(s, c)
 
 
-@kernel
+@inplace_kernel
 def _attitude_covariance_to_world(s: StateRecord, c: CoefficientsRecord) -> None:
     """P's δθ rows and columns in world axes (a change of coordinates, not a move of
     the reference); leaves M (world → error frame) in w_m33 for the way back."""
@@ -323,14 +325,14 @@ def _attitude_covariance_to_world(s: StateRecord, c: CoefficientsRecord) -> None
     _transform_blocks(s, c, s.P[:n, :n], s.w_n33, s.w_W, False)
 
 
-@kernel
+@inplace_kernel
 def _attitude_covariance_from_world(s: StateRecord, c: CoefficientsRecord) -> None:
     """Undo :func:`_attitude_covariance_to_world` (M still in w_m33)."""
     n = c.n_state
     _transform_blocks(s, c, s.P[:n, :n], s.w_m33, s.w_W, False)
 
 
-@kernel
+@inplace_kernel
 def _align(
     s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, keep_heading: bool, keep_bias: bool
 ) -> None:
@@ -364,7 +366,7 @@ def _align(
     s.t_reopened = -math.inf
 
 
-@kernel
+@inplace_kernel
 def _prime_filters(
     s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, accel: np.ndarray, dt: float
 ) -> None:
@@ -376,8 +378,8 @@ def _prime_filters(
     not the filter's.
     """
     _flush_pending(s, c)
-    s.rest_gyro_lp[:] = gyro
-    s.rest_accel_lp[:] = accel
+    copy_into(s.rest_gyro_lp, gyro)
+    copy_into(s.rest_accel_lp, accel)
     s.rest_time = 0.0
     _restart_rest_mean(s)
     s.filters_primed = 1
@@ -395,7 +397,7 @@ def _prime_filters(
         s.P[_RATE + a, _RATE + a] = 1e-12 * s.P[_EPS + a, _EPS + a]
 
 
-@kernel
+@inplace_kernel
 def _reset_velocity_covariance(s: StateRecord, c: CoefficientsRecord) -> None:
     """Nothing known of the vehicle's velocity: its stationary variance, uncorrelated."""
     n = c.n_state
@@ -413,7 +415,7 @@ def _reset_velocity_covariance(s: StateRecord, c: CoefficientsRecord) -> None:
 # --------------------------------------------------------------------------
 
 
-@kernel
+@inplace_kernel
 def _process_noise_rotation(s: StateRecord, c: CoefficientsRecord, phi: np.ndarray) -> None:
     """w_n33 = the rotation in Q's cross term; w_R must hold R̄ before the step.
 
@@ -422,7 +424,7 @@ def _process_noise_rotation(s: StateRecord, c: CoefficientsRecord, phi: np.ndarr
     with the full reset they give the same estimate).
     """
     if c.error == ERROR_LEFT:
-        s.w_n33[:, :] = s.w_R
+        copy_matrix_into(s.w_n33, s.w_R)
     else:
         so3.exp_into(phi, s.w_m33)
         for i in range(3):
@@ -430,7 +432,7 @@ def _process_noise_rotation(s: StateRecord, c: CoefficientsRecord, phi: np.ndarr
                 s.w_n33[i, j] = s.w_m33[j, i]  # Exp(−φ) = Exp(φ)ᵀ
 
 
-@kernel
+@inplace_kernel
 def _world_tilt_rows(s: StateRecord, c: CoefficientsRecord, out: np.ndarray) -> None:
     """out (2×3) = g E W: how a change of δθ (error frame) moves ε.
 
@@ -452,7 +454,7 @@ def _world_tilt_rows(s: StateRecord, c: CoefficientsRecord, out: np.ndarray) -> 
             out[1, j] = g * R[0, j]
 
 
-@kernel
+@inplace_kernel
 def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float, n: int) -> None:
     """P[:n, :n] += Q_d (Van Loan, with the cross term's rotation M in w_n33).
 
@@ -494,7 +496,7 @@ def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float, n: int)
             P[_EPS + a, _EPS + b] += q_aa * acc
 
 
-@kernel
+@inplace_kernel
 def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float) -> None:
     """EKF prediction: exact nominal, P ← Φ P Φᵀ + Q_d.
 
@@ -527,7 +529,7 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
             for j in range(3):
                 F[i, j] *= -dt
     so3.quat_exp_into(phi, s.w_q4)
-    s.w_p4[:] = s.q
+    copy_into(s.w_p4, s.q)
     so3.quat_multiply_into(s.w_p4, s.w_q4, s.q)
     so3.quat_normalize_into(s.q)
     G = s.w_G  # ε x, y rows of Φ: G Φ_θb, with G = g E W after the step
@@ -593,14 +595,14 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
 # accumulated exactly.
 
 
-@kernel
+@inplace_kernel
 def _open_pending(s: StateRecord) -> None:
     """Another transition joins the pending one; the first after a flush starts a new
     interval: P's 6×6 as it stands, the identity transition, no noise."""
     s.pending_steps += 1
     if s.pending_steps > 1:
         return
-    s.pending_P6[:, :] = s.P[:N_ERROR, :N_ERROR]
+    copy_matrix_into(s.pending_P6, s.P[:N_ERROR, :N_ERROR])
     _set_identity(s.pending_theta)
     _set_identity(s.pending_stage)
     for i in range(3):
@@ -613,7 +615,7 @@ def _open_pending(s: StateRecord) -> None:
     s.pending_aided = 0
 
 
-@kernel
+@inplace_kernel
 def _accumulate_prediction(s: StateRecord, c: CoefficientsRecord) -> None:
     """The prediction :func:`_predict_linear` just made (Φ_θθ in w_n33 for the right
     error, Φ_θb in w_m33, G Φ_θb in w_G) after the pending transition."""
@@ -636,7 +638,7 @@ def _accumulate_prediction(s: StateRecord, c: CoefficientsRecord) -> None:
                 s.pending_U[a, 3 + j] += s.w_G[a, j]
 
 
-@kernel
+@inplace_kernel
 def _accumulate_absorb(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -690,7 +692,8 @@ def _accumulate_absorb(
     N[2, 2] += n22
     if not aided:
         return
-    M = _aided_coupling(s, c)  # the current δθ is Θθ δθ₀ + Θb δb₀
+    _aided_coupling(s, c)  # the current δθ is Θθ δθ₀ + Θb δb₀
+    M = s.w_aid
     s.pending_aided = 1
     skew = c.error == ERROR_LEFT  # M = [a]×
     for j in range(N_ERROR):
@@ -705,20 +708,20 @@ def _accumulate_absorb(
         U[5, j] += g1 * m2
 
 
-@inlined_kernel
+@inplace_inlined_kernel
 def _along_stages(S: np.ndarray, stage: int, M: np.ndarray, row: int, j: int) -> float:
     """(S ⊗ I₃) applied to column j of the considered rows of M, its entry (stage, axis)
     with ``row`` = N_ERROR + axis: the considered rows are ε, ḟ, v of each axis."""
     return S[stage, 0] * M[row, j] + S[stage, 1] * M[row + 3, j] + S[stage, 2] * M[row + 6, j]
 
 
-@inlined_kernel
+@inplace_inlined_kernel
 def _row_times_column(A: np.ndarray, i: int, B: np.ndarray, j: int) -> float:
     """(A B)[i, j] for A with three columns."""
     return A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
 
 
-@kernel
+@inplace_kernel
 def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
     """Bring P's considered rows up to date: apply the pending transition (with x₆ =
     [δθ, δb], X = P's u rows' x₆ part and Y its u part at the interval's start,
@@ -832,7 +835,7 @@ def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
             P[3 + j, r] = acc
 
 
-@kernel
+@inplace_kernel
 def _sigma_points(s: StateRecord, c: CoefficientsRecord) -> bool:
     """w_sigma_chi = 0, ±columns of √((n + λ) P) (Cholesky). False if P is not PD."""
     n = c.n_state
@@ -852,7 +855,7 @@ def _sigma_points(s: StateRecord, c: CoefficientsRecord) -> bool:
     return True
 
 
-@kernel
+@inplace_kernel
 def _weighted_mean_and_covariance_of_chi(
     s: StateRecord, c: CoefficientsRecord, mean: np.ndarray
 ) -> None:
@@ -873,7 +876,7 @@ def _weighted_mean_and_covariance_of_chi(
             s.P[j, i] = acc
 
 
-@kernel
+@inplace_kernel
 def _predict_sigma_point(
     s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float
 ) -> bool:
@@ -909,7 +912,7 @@ def _predict_sigma_point(
         for i in range(3):
             phi[i] = (gyro[i] - s.b[i] - chi[k, 3 + i]) * dt
         so3.quat_exp_into(phi, s.w_q4)
-        s.w_p4[:] = qk
+        copy_into(s.w_p4, qk)
         so3.quat_multiply_into(s.w_p4, s.w_q4, qk)
         if n > N_ERROR:
             for a in range(2):
@@ -918,7 +921,7 @@ def _predict_sigma_point(
                     acc += G_before[j, a] * chi[k, j]
                 chi[k, _EPS + a] -= acc
         local_into(qk, s.w_prior_q, c.error, c.chart, chi[k, :3], s.w_q4)
-    s.q[:] = s.w_prior_q
+    copy_into(s.q, s.w_prior_q)
     if n > N_ERROR:
         _world_tilt_rows(s, c, s.w_H)  # W' = R̄ after the step
         for k in range(2 * n + 1):
@@ -935,7 +938,7 @@ def _predict_sigma_point(
     return True
 
 
-@kernel
+@inplace_kernel
 def predict(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float) -> None:
     """Propagate nominal and covariance over Δt with the gyroscope sample."""
     if c.update == UPDATE_SIGMA_POINT and _predict_sigma_point(s, c, gyro, dt):
@@ -948,12 +951,12 @@ def predict(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt: float) 
 # --------------------------------------------------------------------------
 
 
-@kernel
+@inplace_kernel
 def _gravity_residual(s: StateRecord, q: np.ndarray, r: np.ndarray) -> None:
     gravity.residual_into(q, s.w_z, s.w_Bz, r, s.w_R, s.w_h, s.w_u3)
 
 
-@kernel
+@inplace_kernel
 def _gravity_jacobian(s: StateRecord, c: CoefficientsRecord) -> None:
     """w_H = [H_θ, 0, H_ε] at the point where :func:`_gravity_residual` left w_R, w_h."""
     gravity.jacobian_into(s.w_R, s.w_h, s.w_z, s.w_Bz, c.error, s.w_H, s.w_m33, s.w_n33)
@@ -974,7 +977,7 @@ def _gravity_jacobian(s: StateRecord, c: CoefficientsRecord) -> None:
         )
 
 
-@kernel
+@inplace_kernel
 def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: float) -> float:
     """C = Pi Hᵀ (w_C), S = H C + var I (w_S), K = C S⁻¹ (w_K); returns the NIS of w_r.
 
@@ -1024,7 +1027,7 @@ def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: floa
     return r0 * r0 * i00 + 2.0 * r0 * r1 * i01 + r1 * r1 * i11
 
 
-@kernel
+@inplace_kernel
 def _joseph_update(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, from_prior: bool) -> None:
     """P = (I − K H) Pi (I − K H)ᵀ + K V Kᵀ with the considered rows of K zero.
 
@@ -1036,11 +1039,11 @@ def _joseph_update(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, from_p
     n = c.n_state
     P = s.P[:n, :n]
     if not from_prior:
-        P[:, :] = Pi
+        copy_matrix_into(P, Pi)
     gain_update(P, s.w_K[:n], s.w_C[:n], s.w_S, 2)
 
 
-@kernel
+@inplace_kernel
 def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: float) -> bool:
     """Gauss–Newton on the MAP cost (one iteration: the EKF). False if gated out.
 
@@ -1051,8 +1054,8 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
     ε's estimate is what the Schmidt filter keeps, zero.
     """
     n = c.n_state
-    s.w_prior_q[:] = s.q
-    s.w_prior_b[:] = s.b
+    copy_into(s.w_prior_q, s.q)
+    copy_into(s.w_prior_b, s.b)
     # the prior seen from the iterate: P itself at the first (read only until
     # the Joseph form), its transport T P Tᵀ into w_A at later ones
     Pi = s.P[:n, :n]
@@ -1075,7 +1078,7 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
             reset_jacobian_into(d[:3], c.error, c.chart, c.reset, s.w_m33)
             _world_move_into(s.q, s.w_prior_q, s.w_W, s.w_q4)
             Pi = s.w_A[:n, :n]
-            Pi[:, :] = s.P[:n, :n]
+            copy_matrix_into(Pi, s.P[:n, :n])
             _transform_blocks(s, c, Pi, s.w_m33, s.w_W, True)
             T = s.w_m33  # m = −T d: only δθ is transported (d's considered part is 0)
             for i in range(3):
@@ -1121,7 +1124,7 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
     return True
 
 
-@kernel
+@inplace_kernel
 def _sigma_point_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: float) -> bool:
     """Unscented update of the error about the nominal, then the measurement reset."""
     if not _sigma_points(s, c):  # P lost definiteness: the linearised update still works
@@ -1188,7 +1191,7 @@ def _sigma_point_update(s: StateRecord, c: CoefficientsRecord, var: float, gate:
     return True
 
 
-@kernel
+@inplace_kernel
 def _reopen_tilt(s: StateRecord, c: CoefficientsRecord) -> None:
     """After rejecting the accelerometer too long: tilt variance back to its initial value.
 
@@ -1198,7 +1201,7 @@ def _reopen_tilt(s: StateRecord, c: CoefficientsRecord) -> None:
     _set_attitude_covariance_world(s, c, c.initial_tilt_var, c.initial_heading_var, True, False)
 
 
-@kernel
+@inplace_kernel
 def _gyro_clipped(c: CoefficientsRecord, gyro: np.ndarray) -> bool:
     limit = c.gyro_clip
     return abs(gyro[0]) >= limit or abs(gyro[1]) >= limit or abs(gyro[2]) >= limit
@@ -1211,7 +1214,7 @@ _CALM_RATE = math.radians(30.0)
 _CALM_TIME = 0.5
 
 
-@kernel
+@inplace_kernel
 def _realign_when_calm(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -1249,7 +1252,7 @@ def _realign_when_calm(
     s.flags = (s.flags & ~_ACCEL_DEFERRED) | _CLIP_REALIGNED
 
 
-@kernel
+@inplace_kernel
 def _lowpass_step(
     c: CoefficientsRecord, dt: float
 ) -> tuple[float, float, float, float, float, float]:
@@ -1281,10 +1284,10 @@ def _lowpass_step(
 _SAME_DT = 1e-9
 
 
-@kernel
-def _step_coefficients(s: StateRecord, c: CoefficientsRecord, dt: float) -> np.ndarray:
-    """The coefficients that depend on Δt alone (``s.step_coefficients``), computed again
-    only when Δt changes: a steady rate computes them once."""
+@inplace_kernel
+def _step_coefficients(s: StateRecord, c: CoefficientsRecord, dt: float) -> None:
+    """The coefficients that depend on Δt alone into ``s.step_coefficients``, computed
+    again only when Δt changes: a steady rate computes them once."""
     out = s.step_coefficients
     if not abs(dt - s.step_coefficients_dt) <= _SAME_DT * dt:  # (also NaN: the first)
         if c.accel_lowpass_time > 0.0:
@@ -1292,10 +1295,9 @@ def _step_coefficients(s: StateRecord, c: CoefficientsRecord, dt: float) -> np.n
             out[6] = math.exp(-dt / c.velocity_time)
         out[7] = 1.0 - math.exp(-dt / c.rest_filter_time)
         s.step_coefficients_dt = dt
-    return out
 
 
-@kernel
+@inplace_kernel
 def _absorb_sample(
     s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float, direct: bool
 ) -> None:
@@ -1319,7 +1321,8 @@ def _absorb_sample(
         for i in range(3):
             s.w_v3[i] -= s.linear_accel[i]
     lp = s.accel_world_lp
-    step = _step_coefficients(s, c, dt)
+    _step_coefficients(s, c, dt)
+    step = s.step_coefficients
     if s.lowpass_time < c.accel_lowpass_time:
         beta = s.lowpass_time / (s.lowpass_time + dt)
         p00, p01, p10, p11, g0, g1 = beta, 0.0, 0.0, 1.0, 1.0 - beta, 0.0
@@ -1375,7 +1378,7 @@ def _absorb_sample(
         _couple_aided_sample(s, c, g0, g1)
 
 
-@kernel
+@inplace_kernel
 def _times3(
     M: np.ndarray, skew: bool, p0: float, p1: float, p2: float
 ) -> tuple[float, float, float]:
@@ -1394,8 +1397,8 @@ def _times3(
     )
 
 
-@kernel
-def _aided_coupling(s: StateRecord, c: CoefficientsRecord) -> np.ndarray:
+@inplace_kernel
+def _aided_coupling(s: StateRecord, c: CoefficientsRecord) -> None:
     """w_aid = M = [a]× W: how the attitude error moves an aided sample (in the world)."""
     M = s.w_aid
     so3.hat_into(s.linear_accel, M)
@@ -1406,11 +1409,10 @@ def _aided_coupling(s: StateRecord, c: CoefficientsRecord) -> np.ndarray:
             r0, r1, r2 = M[i, 0], M[i, 1], M[i, 2]
             for j in range(3):
                 s.w_m33[i, j] = r0 * R[0, j] + r1 * R[1, j] + r2 * R[2, j]
-        M[:, :] = s.w_m33
-    return M
+        copy_matrix_into(M, s.w_m33)
 
 
-@kernel
+@inplace_kernel
 def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: float) -> None:
     """The attitude error's part in an aided sample: [ε; ḟ] += [Γ₀; Γ₁] M δθ.
 
@@ -1422,7 +1424,8 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
     not change), then columns. This correlation is what lets the gravity
     update see heading in turns, as a GPS-aided INS does.
     """
-    M = _aided_coupling(s, c)
+    _aided_coupling(s, c)
+    M = s.w_aid
     n = c.n_state
     P = s.P
     skew = c.error == ERROR_LEFT  # M = [a]×
@@ -1448,7 +1451,7 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
 _LINEAR_LIMIT = 0.2
 
 
-@kernel
+@inplace_kernel
 def _take_accel(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float) -> bool:
     """The accelerometer sample into the low-pass (when there is one); False if not finite."""
     if not _vector_is_finite(accel):
@@ -1464,7 +1467,7 @@ def _take_accel(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: fl
     return True
 
 
-@kernel
+@inplace_kernel
 def accel_update(
     s: StateRecord, c: CoefficientsRecord, t: float, accel: np.ndarray, dt: float
 ) -> None:
@@ -1479,7 +1482,7 @@ def accel_update(
         so3.quat_conjugate_into(s.q, s.w_q4)
         so3.quat_rotate_into(s.w_q4, s.accel_world_lp[0], s.w_u3)  # R̄ᵀ f̄
     else:
-        s.w_u3[:] = accel
+        copy_into(s.w_u3, accel)
         if aided:  # f − R̄ᵀa (its heading coupling is not modelled)
             so3.quat_conjugate_into(s.q, s.w_q4)
             so3.quat_rotate_into(s.w_q4, s.linear_accel, s.w_v3)
@@ -1525,7 +1528,7 @@ def accel_update(
         s.t_reopened = t
         gate = 0.0
         s.flags |= _TILT_REOPENED
-    s.w_q_before[:] = s.q
+    copy_into(s.w_q_before, s.q)
     if not _gravity_update(s, c, var, gate):
         # The innovation is beyond the χ² gate: more linear acceleration than the
         # model expects (a burst, a tap). Rather than drop the sample, the model
@@ -1559,7 +1562,7 @@ def accel_update(
             s.flags |= _LOWPASS_RESTARTED
 
 
-@kernel
+@inplace_kernel
 def _gravity_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: float) -> bool:
     """The configured update (iterated or sigma-point); False if the gate stopped it."""
     if c.update == UPDATE_SIGMA_POINT:
@@ -1582,7 +1585,7 @@ _MAG_CHECK_TIME = 0.05
 _MAX_ALIGNED_HEADING_VAR = 1.0
 
 
-@kernel
+@inplace_kernel
 def _heading_step(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
     """w_dx = the error-frame vector of a turn by ψ about the world vertical."""
     _error_frame_from_world(s, c)  # world → error frame in w_m33
@@ -1592,7 +1595,7 @@ def _heading_step(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
         s.w_dx[i] = s.w_m33[i, 2] * psi
 
 
-@kernel
+@inplace_kernel
 def _heading_variance(s: StateRecord, c: CoefficientsRecord) -> float:
     """The variance of the attitude error about the world vertical (rad²)."""
     _heading_step(s, c, 1.0)  # w_dx[:3] = the error-frame image of the vertical
@@ -1603,7 +1606,7 @@ def _heading_variance(s: StateRecord, c: CoefficientsRecord) -> float:
     return var
 
 
-@kernel
+@inplace_kernel
 def _align_heading(s: StateRecord, c: CoefficientsRecord, azimuth: float, var: float) -> None:
     """Turn the estimate so that the field's azimuth is the declination.
 
@@ -1616,7 +1619,7 @@ def _align_heading(s: StateRecord, c: CoefficientsRecord, azimuth: float, var: f
     _set_attitude_covariance_world(s, c, 0.0, var, False, True)
 
 
-@kernel
+@inplace_kernel
 def turn_heading(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
     """Turn the estimate by ψ about the world vertical, keeping its uncertainty.
 
@@ -1630,7 +1633,7 @@ def turn_heading(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
     _apply_correction(s, c, s.w_dx)
 
 
-@kernel
+@inplace_kernel
 def _start_reference(
     s: StateRecord, c: CoefficientsRecord, norm: float, dip: float, learned: float
 ) -> None:
@@ -1649,7 +1652,7 @@ def _start_reference(
     s.mag_clear_time = c.mag_recovery_time
 
 
-@kernel
+@inplace_kernel
 def _track_reference(
     s: StateRecord, c: CoefficientsRecord, norm: float, dip: float, dt: float
 ) -> bool:
@@ -1710,7 +1713,7 @@ def _track_reference(
     return True
 
 
-@kernel
+@inplace_kernel
 def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray, dt: float) -> None:
     """Heading from the magnetometer (:mod:`mavest.estimator.magnetic`); NaN mag: none.
 
@@ -1849,7 +1852,7 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
 _ZERO_RATE_GATE = 16.27
 
 
-@kernel
+@inplace_kernel
 def _detect_rest(
     s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, accel: np.ndarray, dt: float
 ) -> bool:
@@ -1862,7 +1865,8 @@ def _detect_rest(
         s.rest_time = 0.0
         _restart_rest_mean(s)
         return False
-    alpha = _step_coefficients(s, c, dt)[7]
+    _step_coefficients(s, c, dt)
+    alpha = s.step_coefficients[7]
     dev_g = 0.0
     dev_a = 0.0
     for i in range(3):
@@ -1886,7 +1890,7 @@ def _detect_rest(
     return s.rest_time >= c.rest_min_time
 
 
-@kernel
+@inplace_kernel
 def _restart_rest_mean(s: StateRecord) -> None:
     for i in range(3):
         s.rest_gyro_sum[i] = 0.0
@@ -1894,7 +1898,7 @@ def _restart_rest_mean(s: StateRecord) -> None:
     s.rest_sum_time = 0.0
 
 
-@kernel
+@inplace_kernel
 def _zero_rate_update(s: StateRecord, c: CoefficientsRecord) -> None:
     """At rest the gyro measures its bias: y = ω̄_m − b̄, H = [0 I 0], V = σ_g²/T + σ_rest²,
     ω̄_m the mean of the samples since the last update (over T), all at rest."""
@@ -1941,7 +1945,7 @@ def _zero_rate_update(s: StateRecord, c: CoefficientsRecord) -> None:
 # --------------------------------------------------------------------------
 
 
-@kernel
+@inplace_kernel
 def _accel_usable_for_alignment(c: CoefficientsRecord, accel: np.ndarray) -> bool:
     norm = math.sqrt(accel[0] ** 2 + accel[1] ** 2 + accel[2] ** 2)
     return (
@@ -1951,7 +1955,7 @@ def _accel_usable_for_alignment(c: CoefficientsRecord, accel: np.ndarray) -> boo
     )
 
 
-@kernel
+@inplace_kernel
 def step(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -1969,7 +1973,7 @@ def step(
     this sample. Samples that cannot be used are skipped and say why in
     ``s.flags``; the estimate stays finite throughout.
     """
-    s.linear_accel[:] = linear_accel
+    copy_into(s.linear_accel, linear_accel)
     _step_sample(s, c, t, gyro, accel, mag)
     if s.initialised:
         _check_health(s, c, accel)  # (its LDLᵀ reads one triangle)
@@ -1980,20 +1984,20 @@ def step(
     )
 
 
-@kernel
+@inplace_kernel
 def _clear_gravity_report(s: StateRecord) -> None:
     s.nis = math.nan
     s.innovation[0] = math.nan
     s.innovation[1] = math.nan
 
 
-@kernel
+@inplace_kernel
 def _clear_heading_report(s: StateRecord) -> None:
     s.heading_innovation = math.nan
     s.heading_nis = math.nan
 
 
-@kernel
+@inplace_kernel
 def _set_aside_mag(s: StateRecord, mag: np.ndarray) -> None:
     """The sample's magnetometer reading, if it has one, is not looked at (the attitude
     it would correct is not known): say so."""
@@ -2001,7 +2005,7 @@ def _set_aside_mag(s: StateRecord, mag: np.ndarray) -> None:
         s.flags |= _MAG_SET_ASIDE
 
 
-@kernel
+@inplace_kernel
 def _step_sample(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -2107,7 +2111,7 @@ _MAX_HEADING_VAR = math.pi**2
 _FULL_CHECK_EVERY = 64  # checks
 
 
-@kernel
+@inplace_kernel
 def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
     """Heading's variance at most _MAX_HEADING_VAR: its row and column in world axes
     scaled by f (P ← D P D, D = diag(1, 1, f) on δθ: a congruence, so P stays definite)."""
@@ -2123,7 +2127,7 @@ def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
     _attitude_covariance_from_world(s, c)
 
 
-@kernel
+@inplace_kernel
 def _state_is_plausible(s: StateRecord, c: CoefficientsRecord) -> bool:
     """Nominal finite and a unit quaternion, bias plausible, every variance within its
     bound (NaN fails every test): what a sample between updates is checked for."""
@@ -2141,7 +2145,7 @@ def _state_is_plausible(s: StateRecord, c: CoefficientsRecord) -> bool:
     return True
 
 
-@kernel
+@inplace_kernel
 def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
     """:func:`_state_is_plausible`, and P positive definite (LDLᵀ pivots; P is
     symmetric by construction, symmetrise runs at every update)."""
@@ -2158,7 +2162,7 @@ def _state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
     return is_positive_definite(s.P[:m, :m], s.w_T[:m, :m])
 
 
-@kernel
+@inplace_kernel
 def _reinitialise(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> None:
     """Start again from this sample's accelerometer, keeping heading if it is finite
     (what else knows it, in 6-D?); the bias starts again from its prior, as it may
@@ -2183,7 +2187,7 @@ def _reinitialise(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> N
         s.flags |= _NOT_INITIALISED
 
 
-@kernel
+@inplace_kernel
 def _check_health(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> None:
     """After every step: re-initialise a diverged or numerically broken filter.
 
