@@ -33,7 +33,7 @@ from numba import types
 from numpy.typing import ArrayLike
 
 from mavest import so3
-from mavest._jit import callback_kernel, kernel, without_dispatch
+from mavest._jit import callback_kernel, inplace_kernel, kernel, without_dispatch
 from mavest.estimator.layout import (
     COEFFICIENTS_DTYPE,
     N_ERROR,
@@ -57,6 +57,7 @@ from mavest.estimator.layout import (
     StateRecord,
     StepFlags,
 )
+from mavest.estimator.linalg import copy_into
 from mavest.estimator.recursion import step
 
 # Rows per output block: a block is shared by the estimates made from it and freed with
@@ -86,7 +87,7 @@ def components3(value: ArrayLike, name: str) -> Sequence[float]:
     return vector3(value, name).tolist()
 
 
-@kernel
+@inplace_kernel
 def step_into_row(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -121,10 +122,10 @@ def step_into_row(
     sample[10] = ly
     sample[11] = lz
     step(s, c, t, sample[:3], sample[3:6], sample[6:9], sample[9:])
-    out[ROW_Q : ROW_Q + 4] = s.q
-    out[ROW_BIAS : ROW_BIAS + 3] = s.b
+    copy_into(out[ROW_Q : ROW_Q + 4], s.q)
+    copy_into(out[ROW_BIAS : ROW_BIAS + 3], s.b)
     so3.euler_zyx_from_quat_into(s.q, out[ROW_EULER : ROW_EULER + 3])
-    out[ROW_INNOVATION : ROW_INNOVATION + 2] = s.innovation
+    copy_into(out[ROW_INNOVATION : ROW_INNOVATION + 2], s.innovation)
     for i in range(N_ERROR):
         for j in range(N_ERROR):
             out[ROW_COV + N_ERROR * i + j] = s.P[i, j]
