@@ -172,31 +172,42 @@ class Estimator:
         self._coefficients = make_coefficients(self.config)
         self._state = new_state(self._coefficients)
         self._turn = _turn_entry_point(self._state, self._coefficients)
-        self._online = _ONLINE(self._state, self._coefficients)
+        # The online step is made by the first update: loading its compiled code takes
+        # tens of milliseconds, which a caller of update_batch alone (mavest replay)
+        # need not wait for. (Which step, the extension's or the Python path's, is
+        # decided here.)
+        self._online: Any = None
+        self._online_kind = _ONLINE
+
+    def _start_online(self) -> None:
+        self._online = self._online_kind(self._state, self._coefficients)
         self._bind_update()
 
     def _bind_update(self) -> None:
-        # This estimator's update is its online step's own method, which a call then
+        # This estimator's update is then its online step's own method, which a call
         # reaches with no Python frame of ours on the way (a frame costs as much as the
-        # rest of the way in); the method below documents it. The online step stays the
-        # same object for life, so an update fetched once follows resets.
+        # rest of the way in); the method below documents it and makes the step. The
+        # online step stays the same object for life, so an update fetched once follows
+        # resets.
         self.update = self._online.update
 
     def _bind(self, state: np.ndarray) -> None:
         """Adopt a state record; estimates go into a fresh output block."""
         self._state = state
-        self._online.bind(state)
+        if self._online is not None:
+            self._online.bind(state)
 
     def __getstate__(self) -> dict[str, Any]:
         # (for copy.deepcopy) the bound update is not copied but bound again to the copy's
         # own online step
         attributes = self.__dict__.copy()
-        del attributes["update"]
+        attributes.pop("update", None)
         return attributes
 
     def __setstate__(self, attributes: dict[str, Any]) -> None:
         self.__dict__.update(attributes)
-        self._bind_update()
+        if self._online is not None:
+            self._bind_update()
 
     def reset(self) -> None:
         """Forget everything; the next usable sample initialises again."""
@@ -332,6 +343,8 @@ class Estimator:
         specific force, and in turns the gravity update then also sees heading.
         None (or NaN): unknown, averaged away by the low-pass.
         """
+        if self._online is None:  # the first update: later ones go straight to the step
+            self._start_online()
         return self._online.update(t, gyro, accel, mag, linear_accel)
 
     def update_batch(
