@@ -201,9 +201,10 @@ inlined_kernel = _compiled(inline="always")
 # The filter's kernels allocate nothing: they work in the arrays they are given (the
 # state record's fields and scratch). Compiled without numba's runtime (NRT), they
 # also drop its reference counting, a call or two for every array that crosses a
-# kernel's boundary: a fifth of a step's time in the batch loop and the online step
-# (tools/speed.py at 200 Hz: 1.28 → 1.18 µs online, 1.06 → 0.82 µs batch). An
+# kernel's boundary, atomic where the array came from Python (tools/speed.py at
+# 200 Hz: the batch loop 1.06 → 0.82 µs a sample, the online call 1.28 → 1.18). An
 # allocation in one of them (or in anything it calls) fails to compile, saying so.
+# (numba passes the setting down to callees that do not set it themselves.)
 inplace_kernel = _compiled(_nrt=False)
 inplace_inlined_kernel = _compiled(inline="always", _nrt=False)
 
