@@ -71,20 +71,47 @@ def cache_is_warm() -> bool:
     return any(CACHE_DIRECTORY.rglob("*.nbi"))
 
 
-def _external_symbols(bitcode: bytes) -> tuple[str, ...]:
+def _module_symbols(bitcode: bytes) -> tuple[tuple[str, ...], frozenset[str]]:
     """The symbols a compiled module takes from outside itself (numba's runtime and
-    helpers, libm, Python's C API), by name; LLVM's own intrinsics need no one."""
+    helpers, libm, Python's C API; LLVM's own intrinsics need no one) and those it
+    defines, by name."""
     import llvmlite.binding as ll
 
     module = ll.parse_bitcode(bitcode)
-    return tuple(
-        sorted(
-            value.name
-            for values in (module.functions, module.global_variables)
-            for value in values
-            if value.is_declaration and not value.name.startswith("llvm.")
-        )
-    )
+    external: list[str] = []
+    defined: set[str] = set()
+    for values in (module.functions, module.global_variables):
+        for value in values:
+            if not value.is_declaration:
+                defined.add(value.name)
+            elif not value.name.startswith("llvm."):
+                external.append(value.name)
+    return tuple(sorted(external)), frozenset(defined)
+
+
+def _library_parsed_when_linked(codegen: Any, serialized: Any, defined: frozenset[str]) -> Any:
+    """numba's ``CPUCodeLibrary._unserialize`` of a library cached as object code,
+    except that the module's bitcode, which a load parses only to list the symbols
+    it defines and to keep for linking into code compiled later, is parsed when such
+    code first links it: the list is recorded in the entry. (Parsing was 45 of a
+    replay's 210 ms after imports, the filter's 1 MB module most of it.)"""
+    import llvmlite.binding as ll
+
+    name, _, (object_code, bitcode) = serialized
+    library = codegen.create_library(name)
+    library.enable_object_caching()
+    library._set_compiled_object(object_code)
+    parsed: list[Any] = []
+
+    def module_for_linking() -> Any:
+        if not parsed:
+            parsed.append(ll.parse_bitcode(bitcode))
+        return parsed[0]
+
+    library._get_module_for_linking = module_for_linking
+    library._finalize_final_module()
+    codegen._engine._defined_symbols |= defined
+    return library
 
 
 def _lean_cache_class() -> type | None:
@@ -95,17 +122,25 @@ def _lean_cache_class() -> type | None:
     imports and registers every typing and lowering module it has, its linear
     algebra among them, whose BLAS check imports scipy.linalg. That was about half a
     second of every command's start, and a load uses none of it: a cached kernel is
-    object code, which needs numba's runtime (NRT, initialised here as the refresh
-    does first) and symbols numba registers when it starts (helpers, libm), plus any
-    that a module registers when imported. So that no kernel runs with a symbol
-    missing (a crash, not an error), each entry records, when compiled, the external
-    symbols it uses; a load that finds one not yet defined refreshes first, as numba
-    would. A compile (a cache miss) refreshes as always: numba's compiler does it
-    itself.
+    object code, which needs symbols numba registers when it starts (helpers, libm),
+    those of its runtime (NRT) if it uses it, plus any that a module registers when
+    imported. So that no kernel runs with a symbol missing (a crash, not an error),
+    each entry records, when compiled, the external symbols it uses; a load that
+    finds one not yet defined initialises the runtime (which defines its own), then
+    if one is still missing refreshes, as numba would. A command whose kernels are
+    all compiled without the runtime (``inplace_kernel``: ``mavest replay``) never
+    initialises it, 20 ms. A compile (a cache miss) refreshes as always: numba's
+    compiler does it itself.
+
+    The entry also records the symbols its module defines, which numba's load gets
+    by parsing the module's bitcode: that is parsed only when code compiled later
+    links the kernel in (:func:`_library_parsed_when_linked`).
     """
     try:
         import llvmlite.binding as ll
         from numba.core.caching import CompileResultCacheImpl, FunctionCache
+        from numba.core.codegen import CPUCodeLibrary, JITCPUCodegen, JitEngine
+        from numba.core.compiler_lock import global_compiler_lock
         from numba.core.runtime import rtsys
     except ImportError:
         return None
@@ -117,6 +152,13 @@ def _lean_cache_class() -> type | None:
             (CompileResultCacheImpl, "reduce"),
             (CompileResultCacheImpl, "rebuild"),
             (rtsys, "initialize"),
+            (JITCPUCodegen, "unserialize_library"),
+            (JITCPUCodegen, "create_library"),
+            (CPUCodeLibrary, "enable_object_caching"),
+            (CPUCodeLibrary, "_set_compiled_object"),
+            (CPUCodeLibrary, "_finalize_final_module"),
+            (CPUCodeLibrary, "_get_module_for_linking"),
+            (JitEngine, "_load_defined_symbols"),  # (which fills _defined_symbols)
         )
     ):
         return None
@@ -128,16 +170,34 @@ def _lean_cache_class() -> type | None:
                 # numba's entry starts with its library: (name, "object", (object
                 # code, the module's bitcode)) for the JIT's
                 _, kind, data = payload[0]
-                symbols = _external_symbols(data[1]) if kind == "object" else None
+                symbols = _module_symbols(data[1]) if kind == "object" else None
             except Exception:  # laid out otherwise: none recorded, so loads set up
                 symbols = None
             return (payload, symbols)
 
         def rebuild(self, target_context: Any, entry: Any) -> Any:
             payload, symbols = entry if len(entry) == 2 else (entry, None)
-            if symbols is None or not all(map(ll.address_of_symbol, symbols)):
-                target_context.refresh()  # what numba does before every load
-            return super().rebuild(target_context, payload)
+            if symbols is None:
+                rtsys.initialize(target_context)
+                target_context.refresh()
+                return super().rebuild(target_context, payload)
+            external, defined = symbols
+            if not all(map(ll.address_of_symbol, external)):
+                # numba's runtime defines its symbols when initialised (20 ms, which a
+                # command whose kernels use none of it saves); anything still missing
+                # is registered by the refresh numba does before every load
+                rtsys.initialize(target_context)
+                if not all(map(ll.address_of_symbol, external)):
+                    target_context.refresh()
+            codegen = target_context.codegen()
+            codegen.unserialize_library = lambda serialized: _library_parsed_when_linked(
+                codegen, serialized, defined
+            )
+            with global_compiler_lock:  # (no other thread's load sees the lambda)
+                try:
+                    return super().rebuild(target_context, payload)
+                finally:
+                    del codegen.unserialize_library
 
     class _KernelCache(FunctionCache):
         _impl_class = _KernelCacheImpl
@@ -163,7 +223,6 @@ def _lean_cache_class() -> type | None:
             return getattr(self, name)
 
         def load_overload(self, sig: Any, target_context: Any) -> Any:
-            rtsys.initialize(target_context)
             with self._guard_against_spurious_io_errors():
                 return self._load_overload(sig, target_context)
 

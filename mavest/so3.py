@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from mavest._jit import kernel
+from mavest._jit import inplace_kernel, kernel
 
 # Series expansions are used below this angle (rad). With the terms kept, the
 # truncation error there is below 1e-17 relative.
@@ -476,7 +476,7 @@ def euler_zyx_from_matrix(R: np.ndarray) -> np.ndarray:
     return np.array([roll, pitch, yaw])
 
 
-@kernel
+@inplace_kernel
 def euler_zyx_from_quat_into(q: np.ndarray, out: np.ndarray) -> None:
     """(roll, pitch, yaw) of a unit quaternion, from the matrix elements it needs only."""
     w, x, y, z = q[0], q[1], q[2], q[3]

@@ -263,6 +263,25 @@ def test_scan_finds_the_records_the_reader_finds(flights: dict[str, Flight]) -> 
     assert index.message_id.tolist() == [h.msgId for h in headers]
 
 
+def test_the_crc_eight_bytes_at_a_time_is_pymavlinks() -> None:
+    """Every length around the eight-byte steps, from any offset and register."""
+    from pymavlink.mavutil import x25crc
+
+    rng = np.random.default_rng(3)
+    for length in [*range(40), 255, 280, 1001]:
+        data = rng.integers(0, 256, size=length + 11, dtype=np.uint8)
+        offset = int(rng.integers(0, 11))
+        chunk = bytes(data[offset : offset + length])
+        assert bulk._x25_run(data, offset, offset + length, 0xFFFF) == x25crc(chunk).crc
+        # from a register part way through: the same as accumulating the rest
+        head, tail = chunk[: length // 3], chunk[length // 3 :]
+        register = x25crc(head).crc
+        expected = x25crc(head)
+        expected.accumulate(tail)
+        start = offset + len(head)
+        assert bulk._x25_run(data, start, offset + length, register) == expected.crc
+
+
 def test_scan_stops_at_the_first_record_that_is_not_clean(flights: dict[str, Flight]) -> None:
     records = flights["ardupilot"].records
     damaged = bytearray(_tlog_bytes(records[:100]))

@@ -58,14 +58,62 @@ def test_a_cached_kernel_loads_without_numbas_set_up_unless_a_symbol_is_missing(
 
     (entry_file,) = (tmp_path / "cache").rglob("*.nbc")
     monkeypatch.syspath_prepend(str(tmp_path))  # (the entry names the kernel's module)
-    payload, symbols = pickle.loads(entry_file.read_bytes())
-    assert any(name.startswith("NRT_") for name in symbols), symbols
+    payload, (external, defined) = pickle.loads(entry_file.read_bytes())
+    assert any(name.startswith("NRT_") for name in external), external
+    assert any("roots" in name for name in defined), defined
     # a symbol the kernel would need and nothing has defined yet: set up first
-    entry_file.write_bytes(pickle.dumps((payload, (*symbols, "mavest_no_such_symbol"))))
+    doctored = (payload, ((*external, "mavest_no_such_symbol"), defined))
+    entry_file.write_bytes(pickle.dumps(doctored))
     assert _probe(tmp_path) == (compiled, True)
     # an entry without the symbols (numba's own): set up first, as numba does
     entry_file.write_bytes(pickle.dumps(payload))
     assert _probe(tmp_path) == (compiled, True)
+
+
+LINKED_KERNELS = """
+import numpy as np
+
+from mavest._jit import inplace_kernel
+
+
+@inplace_kernel
+def halve_into(v, out):
+    for i in range(v.shape[0]):
+        out[i] = 0.5 * v[i]
+"""
+
+LINKED_PROBE = """
+import numpy as np
+from numba import njit
+from numba.core.runtime import rtsys
+
+import linked_kernels
+
+out = np.empty(3)
+linked_kernels.halve_into(np.arange(3.0), out)
+runtime_before = rtsys._init
+
+
+@njit  # (not cached: compiled here, calling the kernel loaded from the cache)
+def halves(n):
+    out = np.empty(n)
+    linked_kernels.halve_into(np.arange(n) * 1.0, out)
+    return out
+
+
+print(out.sum(), runtime_before, halves(4).sum())
+"""
+
+
+def test_a_kernel_loaded_from_the_cache_links_into_code_compiled_later(tmp_path: Path) -> None:
+    """Its module's bitcode, not parsed when it loads, is when a new kernel calls it; a
+    kernel without numba's runtime loads without initialising it."""
+    (tmp_path / "linked_kernels.py").write_text(LINKED_KERNELS)
+    env = dict(os.environ, MAVEST_CACHE_DIR=str(tmp_path / "cache"), PYTHONPATH=str(tmp_path))
+    command = [sys.executable, "-c", LINKED_PROBE]
+    for _ in range(2):  # compiled and cached, then loaded from the cache
+        out = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1.5", "False", "3.0"]
 
 
 def test_a_kernels_cache_is_set_up_when_first_used() -> None:
@@ -101,11 +149,14 @@ import sys
 from mavest.cli import main
 
 main(["replay", sys.argv[1], "--out-tlog", sys.argv[2], "-q"])
-print(*(name in sys.modules for name in ("numba.np.arraymath", "scipy.linalg")))
+from numba.core.runtime import rtsys
+
+print(*(name in sys.modules for name in ("numba.np.arraymath", "scipy.linalg")), rtsys._init)
 """
 
 
 def test_a_replay_starts_without_numbas_compiler_or_scipy(tmp_path: Path) -> None:
+    """Nor numba's runtime: the kernels a replay loads are all compiled without it."""
     from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
 
     flight = tmp_path / "flight.tlog"
@@ -113,4 +164,4 @@ def test_a_replay_starts_without_numbas_compiler_or_scipy(tmp_path: Path) -> Non
     command = [sys.executable, "-c", REPLAY, str(flight), str(tmp_path / "ours.tlog")]
     subprocess.run(command, capture_output=True, check=True)  # (compiles if not cached yet)
     out = subprocess.run(command, capture_output=True, text=True, check=True).stdout
-    assert out.splitlines()[-1] == "False False", out
+    assert out.splitlines()[-1] == "False False False", out

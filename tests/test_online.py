@@ -156,6 +156,29 @@ def test_both_paths_give_the_same_estimates_bit_for_bit(update: str) -> None:
     assert compiled.samples == python.samples == n
 
 
+def test_a_batch_fed_estimator_steps_lone_samples_as_batches_then_online() -> None:
+    """Estimator(batch_fed=True), as mavest replay makes them: its first updates run the
+    batch loop on the one sample (the online step is not even made), later ones the
+    online step; the estimates are the plain estimator's, bit for bit."""
+    data = simulate(6.0, 100.0, motion=Motion(velocity_sigma=2.0), seed=6)
+    n = len(data.t)
+    assert n > estimator_module._LONE_BATCHES + 100
+    fed, plain = Estimator(batch_fed=True), Estimator()
+    for i in range(n):
+        m = None if i % 4 else data.mag[i]
+        a = None if i < n // 2 else tuple(data.linear_accel[i].tolist())
+        inputs = (data.t[i], data.gyro[i], data.accel[i], m, a)
+        _assert_same(fed.update(*inputs), plain.update(*inputs), f"sample {i}")
+        assert (fed._online is None) == (i < estimator_module._LONE_BATCHES), i
+    np.testing.assert_array_equal(fed.cov, plain.cov)
+    fresh = Estimator(batch_fed=True)
+    with pytest.raises(ValueError, match="gyro must have 3 components"):
+        fresh.update(0.0, [0.0, 0.0], [0.0, 0.0, -9.8])
+    with pytest.raises(ValueError, match="linear_accel must have 3 components"):
+        fresh.update(0.0, [0.0, 0.0, 0.0], [0.0, 0.0, -9.8], None, [1.0])
+    assert fresh.samples == 0
+
+
 def test_both_paths_skip_the_same_samples_and_reject_the_same_inputs(online_path: str) -> None:
     est = Estimator()
     first = est.update(1.0, (0.0, 0.0, 0.0), (0.0, 0.0, -9.8))

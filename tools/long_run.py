@@ -467,6 +467,11 @@ def _mib(value: float) -> str:
     return f"{value / MIB:.1f} MiB"
 
 
+def _wall(seconds: float) -> str:
+    """Whole seconds, or hundredths below ten (a short run's replay takes under one)."""
+    return f"{seconds:.0f} s" if seconds >= 10.0 else f"{seconds:.2f} s"
+
+
 def _rss_at(samples: list[tuple[float, int]], t: float) -> tuple[float, int]:
     """The RSS sample nearest to flight time t."""
     return min(samples, key=lambda sample: abs(sample[0] - t))
@@ -579,11 +584,11 @@ def replay_rows(table: Table, run: ReplayRun, expected_samples: int) -> None:
     table.add("replayed tlog", f"{run.tlog_bytes / 1e6:.0f} MB, {run.pymavlink_messages} messages")
     table.add(
         "`mavest replay FILE --out-tlog OUT`: peak RSS, wall",
-        f"{_mib(mavest.peak_rss)}, {mavest.wall:.0f} s ({run.mavest_samples} samples estimated)",
+        f"{_mib(mavest.peak_rss)}, {_wall(mavest.wall)} ({run.mavest_samples} samples estimated)",
     )
     table.add(
         "pymavlink parse (mavlink_connection + recv_match): peak RSS, wall",
-        f"{_mib(pymavlink.peak_rss)}, {pymavlink.wall:.0f} s",
+        f"{_mib(pymavlink.peak_rss)}, {_wall(pymavlink.wall)}",
     )
     table.add(
         f"`mavest replay` of a {BASELINE_SECONDS:g} s flight: peak RSS, wall",

@@ -253,7 +253,7 @@ def row_of(
     row = np.empty(ROW_WIDTH)
     row[ROW_Q : ROW_Q + 4] = q
     row[ROW_BIAS : ROW_BIAS + 3] = bias
-    row[ROW_EULER : ROW_EULER + 3] = so3.euler_zyx_from_quat(row[ROW_Q : ROW_Q + 4])
+    so3.euler_zyx_from_quat_into(row[ROW_Q : ROW_Q + 4], row[ROW_EULER : ROW_EULER + 3])
     row[ROW_INNOVATION : ROW_INNOVATION + 2] = innovation
     row[ROW_COV : ROW_COV + N_ERROR * N_ERROR] = np.asarray(cov, dtype=np.float64).reshape(-1)
     row[ROW_T] = float(t)

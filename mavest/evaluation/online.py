@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavest._jit import kernel, without_dispatch
+from mavest._jit import inplace_kernel, kernel, without_dispatch
 
 Euler = tuple[float, float, float]
 
@@ -168,12 +168,12 @@ def _add(s: np.void, kind: int, t: float, e0: float, e1: float, e2: float) -> No
     s.pending_len += 1
 
 
-@kernel
+@inplace_kernel
 def _add_one(state: np.ndarray, kind: int, t: float, e0: float, e1: float, e2: float) -> None:
     _add(state[0], kind, t, e0, e1, e2)
 
 
-@kernel
+@inplace_kernel
 def _add_many(state: np.ndarray, kinds: np.ndarray, t: np.ndarray, euler: np.ndarray) -> None:
     s = state[0]
     for i in range(kinds.shape[0]):

@@ -27,7 +27,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from mavest import so3
-from mavest._jit import kernel
+from mavest._jit import inplace_kernel
 from mavest.mavlink.messages import (
     _HIGHRES_INERTIAL_BITS,
     _HIGHRES_MAG_BITS,
@@ -106,14 +106,56 @@ class RecordIndex(NamedTuple):
         return RecordIndex(*(column[selection] for column in self))
 
 
-@kernel
+def _x25_tables(count: int) -> np.ndarray:
+    """Tables for MAVLink's CRC (X.25, CRC-16/MCRF4XX: reflected polynomial 0x8408)
+    eight bytes at a time: row k, entry b is the CRC register after byte b followed
+    by k zero bytes, from a zero register. The CRC is linear in the register and the
+    bytes, so eight bytes b0…b7 take the register c to
+    T7[(c ^ b0) & 0xFF] ^ T6[(c >> 8) ^ b1] ^ T5[b2] ^ … ^ T0[b7]: eight lookups
+    independent of each other instead of eight steps each waiting for the last
+    (slicing-by-8; the replay's scan and packing were a fifth of its processing)."""
+    tables = np.empty((count, 256), dtype=np.int64)
+    register = np.arange(256, dtype=np.int64)
+    for _ in range(8):
+        register = np.where(register & 1, (register >> 1) ^ 0x8408, register >> 1)
+    tables[0] = register
+    for k in range(1, count):
+        previous = tables[k - 1]
+        tables[k] = (previous >> 8) ^ tables[0][previous & 0xFF]
+    return tables
+
+
+_X25 = _x25_tables(8)
+
+
+@inplace_kernel
 def _x25_update(crc: int, byte: int) -> int:
-    tmp = (byte ^ (crc & 0xFF)) & 0xFF
-    tmp = (tmp ^ (tmp << 4)) & 0xFF
-    return ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return (crc >> 8) ^ _X25[0, (crc ^ byte) & 0xFF]
 
 
-@kernel
+@inplace_kernel
+def _x25_run(data: np.ndarray, start: int, stop: int, crc: int) -> int:
+    """The CRC register after bytes [start, stop) of ``data``, from ``crc``."""
+    k = start
+    while k + 8 <= stop:
+        crc = (
+            _X25[7, (crc ^ data[k]) & 0xFF]
+            ^ _X25[6, ((crc >> 8) ^ data[k + 1]) & 0xFF]
+            ^ _X25[5, data[k + 2]]
+            ^ _X25[4, data[k + 3]]
+            ^ _X25[3, data[k + 4]]
+            ^ _X25[2, data[k + 5]]
+            ^ _X25[1, data[k + 6]]
+            ^ _X25[0, data[k + 7]]
+        )
+        k += 8
+    while k < stop:
+        crc = _x25_update(crc, data[k])
+        k += 1
+    return crc
+
+
+@inplace_kernel
 def _scan(
     data: np.ndarray,
     position: int,
@@ -164,9 +206,7 @@ def _scan(
         end = p + header + length + 2 + signature
         if end > n or message_id >= crc_extra.shape[0] or crc_extra[message_id] < 0:
             break
-        crc = 0xFFFF
-        for k in range(p + 1, p + header + length):
-            crc = _x25_update(crc, data[k])
+        crc = _x25_run(data, p + 1, p + header + length, 0xFFFF)
         crc = _x25_update(crc, crc_extra[message_id])
         body = p + header + length
         if crc != (np.int64(data[body]) | (np.int64(data[body + 1]) << 8)):
@@ -192,7 +232,7 @@ def scan(data: np.ndarray, position: int, last_us: int, capacity: int) -> Record
     return RecordIndex(*(np.ascontiguousarray(out[k, :count]) for k in range(8)))
 
 
-@kernel
+@inplace_kernel
 def _gather(data: np.ndarray, payload: np.ndarray, length: np.ndarray, out: np.ndarray) -> None:
     width = out.shape[1]
     for i in range(payload.shape[0]):
@@ -283,7 +323,7 @@ ATTITUDE_DTYPE = wire_dtype(_ATTITUDE)
 ATTITUDE_QUATERNION_DTYPE = wire_dtype(_ATTITUDE_QUATERNION)
 
 
-@kernel
+@inplace_kernel
 def _pack(
     payloads: np.ndarray,
     message_id: int,
@@ -313,16 +353,13 @@ def _pack(
         row[9] = (message_id >> 16) & 0xFF
         for k in range(length):
             row[10 + k] = payloads[i, k]
-        crc = 0xFFFF
-        for k in range(1, 10 + length):
-            crc = _x25_update(crc, row[k])
-        crc = _x25_update(crc, crc_extra)
+        crc = _x25_update(_x25_run(row, 1, 10 + length, 0xFFFF), crc_extra)
         row[10 + length] = crc & 0xFF
         row[11 + length] = crc >> 8
         out_length[i] = 12 + length
 
 
-@kernel
+@inplace_kernel
 def _euler_rows(q: np.ndarray, out: np.ndarray) -> None:
     for i in range(q.shape[0]):
         so3.euler_zyx_from_quat_into(q[i], out[i])
@@ -388,7 +425,7 @@ def _packed(
     return Packets(out, length)
 
 
-@kernel
+@inplace_kernel
 def _interleave(
     data: np.ndarray,
     start: np.ndarray,

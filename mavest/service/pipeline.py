@@ -194,6 +194,9 @@ class Pipeline:
         self._record_us = 0  # timestamp for records written now
         self._not_followed: set[StreamKey] = set()
         self.ignored_imu: dict[int, int] = {}  # IMU messages from systems not followed
+        # whether the streams' estimators are fed in batches (a replay's BulkFeed), the
+        # few samples that come one at a time too (Estimator's batch_fed)
+        self.batch_fed = False
 
     # ---------------------------------------------------------------- input
 
@@ -381,7 +384,7 @@ class Pipeline:
             return None
         stream = Stream(
             key,
-            Estimator(self.config.estimator),
+            Estimator(self.config.estimator, batch_fed=self.batch_fed),
             vs_autopilot=EulerComparison(wanted.settle_time),
             vs_truth=EulerComparison(wanted.settle_time),
         )
