@@ -52,6 +52,9 @@ ctypedef void (*StepFunction)(
     double, double, double,
 ) noexcept nogil
 
+# online.euler_callback's: the row whose Euler angles to fill in (if not there yet).
+ctypedef void (*EulerFunction)(double*) noexcept nogil
+
 cdef Py_ssize_t ROW_Q = layout.ROW_Q
 cdef Py_ssize_t ROW_BIAS = layout.ROW_BIAS
 cdef Py_ssize_t ROW_EULER = layout.ROW_EULER
@@ -81,6 +84,19 @@ cdef type _FLOAT64 = np.float64
 cdef cnp.ndarray _NAN_ROW = np.full(ROW_WIDTH, np.nan)
 
 
+cdef EulerFunction _euler_of_row = NULL  # loaded when an estimate's angles are first read
+
+
+cdef int _fill_euler(double* row) except -1:
+    """The row's Euler angles from its quaternion, which the step leaves to the first
+    reader (``online.step_into_row``)."""
+    global _euler_of_row
+    if _euler_of_row == NULL:
+        _euler_of_row = <EulerFunction><uintptr_t>online.euler_callback.address
+    _euler_of_row(row)
+    return 0
+
+
 cdef inline cnp.ndarray _view(Estimate estimate, Py_ssize_t offset, int nd, cnp.npy_intp* shape):
     """A view of part of the estimate's row (writable, as the Python path's slices are),
     keeping the row's block alive."""
@@ -108,7 +124,8 @@ cdef class Estimate:
     The live service makes one per IMU sample, so it is lean: it holds the row of
     an output block that the compiled step filled (``ROW_*`` in
     :mod:`mavest.estimator.layout`) and reads it when asked; its arrays are views of
-    that row. No later step writes the row, so an estimate kept stays as it was made.
+    that row. No later step writes the row, so an estimate kept stays as it was made
+    (its Euler angles are filled in when first read).
     """
 
     cdef cnp.ndarray _block  # holds the row: kept alive by this estimate
@@ -230,7 +247,9 @@ cdef class Estimate:
 
     @property
     def euler(self):
-        """(roll, pitch, yaw) in rad, ZYX as MAVLink's ATTITUDE."""
+        """(roll, pitch, yaw) in rad, ZYX as MAVLink's ATTITUDE (made when first read)."""
+        if self._row[ROW_EULER] != self._row[ROW_EULER]:  # NaN: not yet
+            _fill_euler(self._row)
         return _view(self, ROW_EULER, 1, _THREE)
 
     @property

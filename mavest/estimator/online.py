@@ -4,8 +4,8 @@ The filter step itself takes a microsecond or two; getting a sample into it and 
 estimate out of it cost as much again while Python objects crossed on the way (numba
 unboxing 13 floats and a record, boxing a 9-tuple, converting the vectors). So the
 step's body, :func:`step_into_row`, writes everything an estimate shows, scalars
-included, into one float64 row of an output block (layout ``ROW_*``), and is
-compiled twice:
+included, into one float64 row of an output block (layout ``ROW_*``; the Euler
+angles are left to their first reader, :func:`euler_of_row`), and is compiled twice:
 
 * as a C function, :data:`step_callback`, that the extension ``_online`` (Cython)
   calls through its address with the sample's components as C doubles; the
@@ -124,7 +124,11 @@ def step_into_row(
     step(s, c, t, sample[:3], sample[3:6], sample[6:9], sample[9:])
     copy_into(out[ROW_Q : ROW_Q + 4], s.q)
     copy_into(out[ROW_BIAS : ROW_BIAS + 3], s.b)
-    so3.euler_zyx_from_quat_into(s.q, out[ROW_EULER : ROW_EULER + 3])
+    # The Euler angles are made from q when first read (:func:`euler_of_row`): three
+    # atan2 and a hypot, 5 % of an online step that a caller reading q, as a filter
+    # user mostly does, does not need. NaN until then.
+    for i in range(3):
+        out[ROW_EULER + i] = math.nan
     copy_into(out[ROW_INNOVATION : ROW_INNOVATION + 2], s.innovation)
     for i in range(N_ERROR):
         for j in range(N_ERROR):
@@ -138,6 +142,19 @@ def step_into_row(
     out[ROW_HEADING_INNOVATION] = s.heading_innovation
     out[ROW_HEADING_NIS] = s.heading_nis
     out[ROW_MAG_USED] = 1.0 if s.mag_used != 0 else 0.0
+
+
+@inplace_kernel
+def euler_of_row(row: np.ndarray) -> None:
+    """A row's Euler angles from its quaternion, if they are not there yet (NaN)."""
+    if math.isnan(row[ROW_EULER]):
+        so3.euler_zyx_from_quat_into(row[ROW_Q : ROW_Q + 4], row[ROW_EULER : ROW_EULER + 3])
+
+
+@callback_kernel(types.void(types.CPointer(types.float64)))
+def euler_callback(row: np.ndarray) -> None:
+    """:func:`euler_of_row` as a C function: ``row`` points at the ROW_WIDTH doubles."""
+    euler_of_row(numba.carray(row, ROW_WIDTH))
 
 
 _SAMPLE_ARGUMENTS = (types.float64,) * 13  # t, then gyro, accel, mag, linear_accel
@@ -288,7 +305,7 @@ class Estimate:
     __slots__ = ("_row",)
 
     def __init__(self, row: np.ndarray) -> None:
-        self._row = row  # (ROW_WIDTH,), never written again
+        self._row = row  # (ROW_WIDTH,), written again only to fill in the Euler angles
 
     @classmethod
     def of(
@@ -394,8 +411,11 @@ class Estimate:
 
     @property
     def euler(self) -> np.ndarray:
-        """(roll, pitch, yaw) in rad, ZYX as MAVLink's ATTITUDE."""
-        return self._row[_EULER]
+        """(roll, pitch, yaw) in rad, ZYX as MAVLink's ATTITUDE (made when first read)."""
+        row = self._row
+        if math.isnan(row[ROW_EULER]):
+            euler_of_row(row)
+        return row[_EULER]
 
     @property
     def status(self) -> list[str]:
