@@ -183,14 +183,14 @@ class Estimator:
         self._coefficients = make_coefficients(self.config)
         self._state = new_state(self._coefficients)
         self._turn = _turn_entry_point(self._state, self._coefficients)
-        # The online step is made by the first update: loading its compiled code takes
-        # tens of milliseconds, which a caller of update_batch alone (mavest replay)
-        # need not wait for. (Which step, the extension's or the Python path's, is
-        # decided here.)
+        # The online step is made by the first update (a batch-fed estimator's first
+        # after _LONE_BATCHES): loading its compiled code takes tens of milliseconds,
+        # which a caller of update_batch alone need not wait for. (Which step, the
+        # extension's or the Python path's, is decided here.)
         self._online: Any = None
         self._online_kind = _ONLINE
-        # samples update may still take as batches of one (0: none)
-        self._lone_batches = 0 if batch_fed else _LONE_BATCHES
+        # the samples update has taken as batches of one (not batch-fed: none to take)
+        self._batched_alone = 0 if batch_fed else _LONE_BATCHES
 
     def _start_online(self) -> None:
         self._online = self._online_kind(self._state, self._coefficients)
@@ -357,8 +357,8 @@ class Estimator:
         None (or NaN): unknown, averaged away by the low-pass.
         """
         if self._online is None:  # the first update: later ones go straight to the step
-            if self._lone_batches < _LONE_BATCHES:
-                self._lone_batches += 1
+            if self._batched_alone < _LONE_BATCHES:
+                self._batched_alone += 1
                 return self._update_as_batch(t, gyro, accel, mag, linear_accel)
             self._start_online()
         return self._online.update(t, gyro, accel, mag, linear_accel)
