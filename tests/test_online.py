@@ -152,6 +152,8 @@ def test_both_paths_give_the_same_estimates_bit_for_bit(update: str) -> None:
         for name in FIELDS:
             if name not in ("euler", "status"):
                 np.testing.assert_array_equal(getattr(e, name), getattr(batch, name)[i])
+    # the angles, made when first read, are those of the batch's quaternions
+    np.testing.assert_array_equal([e.euler for e, _ in made], batch.euler)
     np.testing.assert_array_equal(compiled.cov, python.cov)
     assert compiled.samples == python.samples == n
 
