@@ -1,8 +1,10 @@
 """The one place that decides how numerical kernels are compiled.
 
 Every kernel in mavest is plain Python on NumPy arrays and scalars, compiled by
-numba. Setting ``NUMBA_DISABLE_JIT=1`` runs the very same code as Python, which
-is how coverage and debuggers see it.
+numba. Setting ``NUMBA_DISABLE_JIT=1`` runs those on arrays and scalars (so3,
+sphere, the MAVLink scan) as Python, as coverage and debuggers see them; not
+those on the filter's and the comparisons' records, which read fields as
+attributes, as NumPy's plain records do not allow.
 
 Compiled code is cached on disk so that only the first run on a machine pays
 the compile time. numba keys each function's cache on its own source file

@@ -111,7 +111,7 @@ def _x25_tables(count: int) -> np.ndarray:
     eight bytes at a time: row k, entry b is the CRC register after byte b followed
     by k zero bytes, from a zero register. The CRC is linear in the register and the
     bytes, so eight bytes b0…b7 take the register c to
-    T7[(c ^ b0) & 0xFF] ^ T6[(c >> 8) ^ b1] ^ T5[b2] ^ … ^ T0[b7]: eight lookups
+    T7[(c & 0xFF) ^ b0] ^ T6[(c >> 8) ^ b1] ^ T5[b2] ^ … ^ T0[b7]: eight lookups
     independent of each other instead of eight steps each waiting for the last
     (slicing-by-8; the replay's scan and packing were a fifth of its processing)."""
     tables = np.empty((count, 256), dtype=np.int64)
@@ -130,7 +130,7 @@ _X25 = _x25_tables(8)
 
 @inplace_kernel
 def _x25_update(crc: int, byte: int) -> int:
-    return (crc >> 8) ^ _X25[0, (crc ^ byte) & 0xFF]
+    return (crc >> 8) ^ _X25[0, (crc & 0xFF) ^ byte]
 
 
 @inplace_kernel
@@ -139,8 +139,8 @@ def _x25_run(data: np.ndarray, start: int, stop: int, crc: int) -> int:
     k = start
     while k + 8 <= stop:
         crc = (
-            _X25[7, (crc ^ data[k]) & 0xFF]
-            ^ _X25[6, ((crc >> 8) ^ data[k + 1]) & 0xFF]
+            _X25[7, (crc & 0xFF) ^ data[k]]
+            ^ _X25[6, (crc >> 8) ^ data[k + 1]]
             ^ _X25[5, data[k + 2]]
             ^ _X25[4, data[k + 3]]
             ^ _X25[3, data[k + 4]]
