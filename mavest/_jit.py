@@ -179,7 +179,9 @@ def _lean_cache_class() -> type | None:
 
         def rebuild(self, target_context: Any, entry: Any) -> Any:
             payload, symbols = entry if len(entry) == 2 else (entry, None)
-            if symbols is None:
+            recorded = isinstance(symbols, tuple) and len(symbols) == 2
+            if not (recorded and isinstance(symbols[1], frozenset)):
+                # none recorded (or laid out otherwise): set up as numba does
                 rtsys.initialize(target_context)
                 target_context.refresh()
                 return super().rebuild(target_context, payload)
@@ -192,10 +194,10 @@ def _lean_cache_class() -> type | None:
                 if not all(map(ll.address_of_symbol, external)):
                     target_context.refresh()
             codegen = target_context.codegen()
-            codegen.unserialize_library = lambda serialized: _library_parsed_when_linked(
-                codegen, serialized, defined
-            )
             with global_compiler_lock:  # (no other thread's load sees the lambda)
+                codegen.unserialize_library = lambda serialized: _library_parsed_when_linked(
+                    codegen, serialized, defined
+                )
                 try:
                     return super().rebuild(target_context, payload)
                 finally:

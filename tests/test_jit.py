@@ -65,9 +65,11 @@ def test_a_cached_kernel_loads_without_numbas_set_up_unless_a_symbol_is_missing(
     doctored = (payload, ((*external, "mavest_no_such_symbol"), defined))
     entry_file.write_bytes(pickle.dumps(doctored))
     assert _probe(tmp_path) == (compiled, True)
-    # an entry without the symbols (numba's own): set up first, as numba does
-    entry_file.write_bytes(pickle.dumps(payload))
-    assert _probe(tmp_path) == (compiled, True)
+    # an entry without the symbols (numba's own), or with the external ones only (an
+    # earlier mavest's): set up first, as numba does
+    for entry in (payload, (payload, external), (payload, ())):
+        entry_file.write_bytes(pickle.dumps(entry))
+        assert _probe(tmp_path) == (compiled, True)
 
 
 LINKED_KERNELS = """
