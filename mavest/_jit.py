@@ -181,8 +181,8 @@ def _lean_cache_class() -> type | None:
             payload, symbols = entry if len(entry) == 2 else (entry, None)
             recorded = isinstance(symbols, tuple) and len(symbols) == 2
             if not (recorded and isinstance(symbols[1], frozenset)):
-                # none recorded (or laid out otherwise): set up as numba does
-                rtsys.initialize(target_context)
+                # none recorded (or laid out otherwise): set up as numba does (the
+                # refresh initialises the runtime first)
                 target_context.refresh()
                 return super().rebuild(target_context, payload)
             external, defined = symbols
