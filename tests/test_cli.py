@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from mavest import __version__
 from mavest.cli import main
+from mavest.service.process import MAVEST, mavest_command
 from mavest.sim import simulate
 
 
@@ -57,3 +62,41 @@ def test_mistakes_get_one_line_and_exit_code_2(
     assert main([a.format(tmp=tmp_path) for a in arguments]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and err.count("\n") == 1, err
+
+
+# What the command's process holds in OPENBLAS_NUM_THREADS; numpy, which reads it when
+# it loads OpenBLAS, is loaded by the program that launch starts.
+_PRINT_BLAS = """
+import os, sys
+sys.argv = ["mavest", "--version"]
+from mavest.launch import main
+assert "numpy" not in sys.modules
+try:
+    main()
+except SystemExit:  # argparse's, after --version
+    pass
+print(os.environ.get("OPENBLAS_NUM_THREADS"))
+"""
+
+
+@pytest.mark.parametrize(("given", "seen"), [(None, "1"), ("3", "3")])
+def test_the_command_keeps_openblas_to_one_thread_unless_told(given: str | None, seen: str) -> None:
+    environment = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        environment["OPENBLAS_NUM_THREADS"] = given
+    done = subprocess.run(
+        [sys.executable, "-c", _PRINT_BLAS], env=environment, capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["mavest", __version__, seen]
+
+
+def test_python_dash_m_mavest_is_the_command(tmp_path: Path) -> None:
+    done = subprocess.run([*MAVEST, "--version"], capture_output=True, text=True, check=False)
+    assert (done.returncode, done.stdout.strip()) == (0, f"mavest {__version__}")
+    assert MAVEST[1:] == ["-m", "mavest"]
+    # a source tree from before ``python -m mavest`` (a benchmark's baseline) runs its cli
+    (tmp_path / "mavest").mkdir()
+    assert mavest_command(str(tmp_path))[1:] == ["-m", "mavest.cli"]
+    (tmp_path / "mavest" / "__main__.py").touch()
+    assert mavest_command(str(tmp_path)) == mavest_command() == MAVEST

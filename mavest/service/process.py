@@ -10,9 +10,23 @@ import sys
 import threading
 import time
 from collections.abc import Mapping
+from pathlib import Path
 
-MAVEST = [sys.executable, "-m", "mavest.cli"]
+# The command as the installed ``mavest`` script runs it (mavest.launch, which sets up
+# the process before the program loads), with this interpreter.
+MAVEST = [sys.executable, "-m", "mavest"]
 READY_LINE = "mavest: listening on"
+
+
+def mavest_command(tree: str | None = None) -> list[str]:
+    """:data:`MAVEST` for the source tree ``tree`` (None: the installed one); a tree from
+    before ``python -m mavest`` existed runs its ``mavest.cli`` (for comparisons with it)."""
+    if tree is None:
+        return MAVEST
+    package = Path(tree) / "mavest"
+    if package.is_dir() and not (package / "__main__.py").exists():
+        return [sys.executable, "-m", "mavest.cli"]
+    return MAVEST
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -37,7 +51,7 @@ class ServiceProcess:
         cwd: str | None = None,
     ) -> None:
         self.process = subprocess.Popen(
-            [*MAVEST, "run", *arguments],
+            [*mavest_command(cwd), "run", *arguments],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
