@@ -85,12 +85,16 @@ def log_into(h: np.ndarray, z: np.ndarray, out: np.ndarray) -> None:
         out[0], out[1], out[2] = k * wx, k * wy, k * wz
         return
     # Near h = ±z the cross product can be so small (1e-162) that its squares are
-    # denormal and the direction w/s is lost: hypot scales them first. It can be
-    # denormal itself (1e-313), and then θ/s overflows: the direction comes first.
-    s = math.hypot(math.hypot(wx, wy), wz)
-    if s > 0.0:
-        theta = math.atan2(s, c)
-        out[0], out[1], out[2] = theta * (wx / s), theta * (wy / s), theta * (wz / s)
+    # denormal and the direction w/s is lost. It can be denormal itself (1e-313),
+    # and then θ/s overflows: the direction comes first, from w scaled by its largest
+    # component, which is exact even where the components are a few denormal steps
+    # (a norm of them rounds: hypot(5e-324, 5e-324) is 5e-324, not 7e-324).
+    m = max(abs(wx), abs(wy), abs(wz))
+    if m > 0.0:
+        ux, uy, uz = wx / m, wy / m, wz / m
+        n = math.sqrt(ux * ux + uy * uy + uz * uz)
+        theta = math.atan2(m * n, c)
+        out[0], out[1], out[2] = theta * (ux / n), theta * (uy / n), theta * (uz / n)
     elif c > 0.0:
         out[0], out[1], out[2] = 0.0, 0.0, 0.0
     else:
