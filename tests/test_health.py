@@ -181,25 +181,51 @@ def test_a_confidently_wrong_bias_is_a_divergence_and_re_initialisation_cures_it
         else:
             assert not np.any(out.flags & RESETS)
     assert tilt_at_end[30.0] < 2.0, tilt_at_end
-    assert tilt_at_end[0.0] > 45.0, tilt_at_end
+    assert tilt_at_end[0.0] > 20.0, tilt_at_end  # (measured: 37.7°; 0.02° with the window)
+
+
+def test_a_confidently_wrong_tilt_beyond_the_linear_limit_is_still_corrected() -> None:
+    # A filter sure (σ 0.06°) of a tilt 30° off, at rest, and never reopened: the
+    # first innovations are far beyond the gate, and what they show is more linear
+    # acceleration than the model expects. ε takes that only up to just short of the
+    # limit where the low-passed direction is deferred; before it took all of it, the
+    # accelerometer was deferred at nearly every update and tilt was still 21° off
+    # after a minute (60° stayed 58° off).
+    t, gyro, accel = _at_rest(60.0, 200.0, seed=3)
+    estimator = Estimator(EstimatorConfig(accel_max_disturbance_time=0.0))
+    estimator.initialise(
+        0.0,
+        _wxyz(Rotation.from_euler("x", 30.0, degrees=True)),
+        bias=[0, 0, 0],
+        cov=1e-6 * np.eye(6),
+    )
+    out = estimator.update_batch(t, gyro, accel)
+    tilt = _tilt_deg(out.q)
+    assert not np.any(out.flags & (RESETS | StepFlags.TILT_REOPENED))
+    deferred = np.count_nonzero(out.flags & StepFlags.ACCEL_DEFERRED)
+    assert deferred <= 50, deferred  # (measured: 40, the low-pass's first 0.8 s)
+    assert np.all(np.diff(tilt[::200]) < 0.1)  # towards the accelerometer, second by second
+    assert tilt[-1] < 2.0, tilt[-1]  # (measured: 0.7°)
 
 
 @pytest.mark.parametrize("seed", [2, 4])
 def test_turning_flights_without_aiding_may_reopen_tilt_but_never_diverge(seed: int) -> None:
     # the hardest case for the accelerometer: coordinated turns with their linear
     # acceleration not removed (no GPS); in these two flights a turn lasts about as
-    # long as accel_max_disturbance_time, so tilt may be reopened (measured: once, at
-    # 44.1 s, and none; a few ULPs elsewhere have made it once in each), which is not a
-    # divergence. Tilt error peaks at 42.7° and 37.3°, and comes back. (Over seeds
-    # 1–12 an iteration tolerance of 1e-5 rad instead of 1e-6 re-initialised one or two:
-    # the case is on a knife edge.)
+    # long as accel_max_disturbance_time, so tilt may be reopened, which is not a
+    # divergence. Tilt error peaks at 37.1° and 37.3°, and comes back. Seeds 1–12, each
+    # also with the rounding perturbed (iteration tolerance 0.9e-6 and 1.1e-6, the gyro
+    # scaled by 1 ± 1e-15): no re-initialisation in 60 flights, 2 reopenings, peaks
+    # 35.5–38.5°. (Before ε's share of a disturbance was capped below the linear limit,
+    # the same 60 had 5 re-initialisations, 32 reopenings and peaks up to 65°: which
+    # flights passed was decided by the rounding.)
     flight = fly(120.0, 200.0, seed)
     gyro, accel = apply_imu_errors(flight, seed=seed)
     out = Estimator().update_batch(flight.t, gyro, accel)
     assert np.count_nonzero(out.flags & StepFlags.TILT_REOPENED) <= 2
     assert not np.any(out.flags & RESETS)
     tilt = np.degrees(attitude_errors(out.q, flight.q_true).inclination)
-    assert tilt.max() < 50.0
+    assert tilt.max() < 45.0
     assert tilt[flight.t > 100.0].max() < 2.0 * tilt.max() / 3.0
 
 

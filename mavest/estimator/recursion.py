@@ -1449,6 +1449,8 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
 
 # The low-passed direction is used once f̄'s error σ_ε is below this fraction of g.
 _LINEAR_LIMIT = 0.2
+# A disturbance's extra variance fills ε's up to this fraction of that limit's.
+_EPS_ROOM = 0.9
 
 
 @inplace_kernel
@@ -1536,11 +1538,19 @@ def accel_update(
         # shows, a = rᵀr/2 − tr S/2 per axis, which brings its NIS to 2; the
         # sample then counts for correspondingly little, and with the low-pass
         # the extra variance leaves with the disturbance, through ε's dynamics.
+        # ε takes it only up to just short of the linear limit (above): beyond
+        # it every later update would be deferred until ε decays, and a tilt
+        # error larger than ~16° (whose innovation puts ε there at once) could
+        # then never be corrected; the rest stays with this sample.
         r0, r1 = s.innovation[0], s.innovation[1]
         extra = max(0.5 * (r0 * r0 + r1 * r1) - 0.5 * (s.w_S[0, 0] + s.w_S[1, 1]), 0.0)
         if lowpass:
+            eps_var = max(s.P[_EPS, _EPS], s.P[_EPS + 1, _EPS + 1])
+            room = _EPS_ROOM * (_LINEAR_LIMIT * c.gravity) ** 2 - eps_var
+            into_eps = min(extra * g2, max(room, 0.0))
             for a in range(2):
-                s.P[_EPS + a, _EPS + a] += extra * g2
+                s.P[_EPS + a, _EPS + a] += into_eps
+            var += extra - into_eps / g2
         else:
             var += extra
         nis = s.nis
