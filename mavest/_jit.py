@@ -34,7 +34,7 @@ def compiles_kernels(source: bytes) -> bool:
     """Whether a module's source takes this module's decorators (so its kernels' code
     is part of the cache's key)."""
     return (
-        re.search(rb"_jit import [^\n]*\b(inplace_)?(inlined_|callback_)?kernel\b", source)
+        re.search(rb"_jit import [^\n]*\b(inplace_)?(inlined_|exact_|callback_)?kernel\b", source)
         is not None
     )
 
@@ -238,8 +238,9 @@ _KernelCache = _lean_cache_class()
 
 def _compiled(**options: Any) -> Callable[[Callable[..., Any]], Any]:
     """A decorator compiling with ``options``, cached on disk."""
-    compile_function = njit(**_KERNEL_OPTIONS, **options)
-    cached = njit(cache=True, **_KERNEL_OPTIONS, **options)
+    options = {**_KERNEL_OPTIONS, **options}
+    compile_function = njit(**options)
+    cached = njit(cache=True, **options)
 
     def decorate(function: Callable[..., Any]) -> Any:
         if _KernelCache is None:
@@ -255,7 +256,14 @@ def _compiled(**options: Any) -> Callable[[Callable[..., Any]], Any]:
 # nogil lets the pipeline run the filter in a worker thread without holding the
 # interpreter; error_model="numpy" makes x/0 give inf/nan as NumPy does, which
 # the kernels check for, instead of raising.
-_KERNEL_OPTIONS = {"nogil": True, "error_model": "numpy"}
+_EXACT_OPTIONS = {"nogil": True, "error_model": "numpy"}
+# The numerical kernels also let LLVM fuse a product and the sum it enters into one
+# fused multiply-add (fastmath's "contract" alone: no reassociation, no assumption
+# about NaN or inf). Each fused pair rounds once instead of twice, so results move in
+# their last bits, and a function inlined into two callers may be fused differently
+# in each; the filter's batch and online paths call one compiled step, and agree to
+# the bit (tests/test_estimator_api.py). tools/speed.py at 200 Hz: 5 % of a sample.
+_KERNEL_OPTIONS = {**_EXACT_OPTIONS, "fastmath": {"contract"}}
 kernel = _compiled()
 # The same, inlined into its callers at numba's IR level: for the small kernels that
 # pass over P several times a sample, where a call per block costs as much as the block
@@ -270,6 +278,10 @@ inlined_kernel = _compiled(inline="always")
 # (numba passes the setting down to callees that do not set it themselves.)
 inplace_kernel = _compiled(_nrt=False)
 inplace_inlined_kernel = _compiled(inline="always", _nrt=False)
+# An inplace kernel without the fused multiply-adds: for the MAVLink kernels whose
+# results must not depend on where they are inlined (the clock's whole-file pass
+# and its sample-by-sample use give the same timestamps to the bit).
+inplace_exact_kernel = _compiled(_nrt=False, fastmath=False)
 
 
 class CallbackKernel:

@@ -200,8 +200,9 @@ def test_bad_samples_are_skipped_and_said_so() -> None:
 def test_every_step_reports_innovation_nis_and_use() -> None:
     data = simulate(30.0, 100.0, seed=4)
     out = estimate(data.t, data.gyro, data.accel)
-    # at 100 Hz with updates at 50 Hz (the default update_rate) every other sample
-    # is an update; the others are predicted only, and say so
+    # at 100 Hz with updates at 40 Hz (the default update_rate) the sample nearest to
+    # each 25 ms is every other one (a tie, which goes to the earlier); the others are
+    # predicted only, and say so
     between = out.flags & StepFlags.BETWEEN_UPDATES != 0
     assert between.mean() == pytest.approx(0.5, abs=0.01)
     # nothing is measured between updates, and what the last update measured is shown

@@ -117,7 +117,7 @@ def test_a_broken_state_is_re_initialised_at_the_next_step_and_said_so(corrupt) 
     tilted = Rotation.from_euler("x", 20.0, degrees=True)
     accel = tilted.inv().apply([0.0, 0.0, -G])  # the vehicle now rests at 20° roll
     t = 2.0
-    for _ in range(4):  # the updates are at 50 Hz: one of these four samples is one
+    for _ in range(5):  # the updates are at 40 Hz: one of these five samples is one
         t += 0.005
         out = estimator.update(t, [0.0, 0.0, 0.0], accel)
         if out.flags & StepFlags.UNHEALTHY_RESET or corrupt is not _corrupt_indefinite:

@@ -444,7 +444,7 @@ def _check(outcome: Outcome, damage: Damage, reference: Counter[bytes]) -> None:
     assert max(abs(roll) for roll, _, _ in outcome.answers) < math.radians(60.0)
     assert outcome.mag_usable == outcome.estimated - damage.mag_dropped
     # one reading per update interval of the flight's time is taken (of 200 Hz readings at
-    # 50 Hz updates: 401 over 8 s), give or take where a damaged stretch shifts the schedule
+    # 40 Hz updates: 321 over 8 s), give or take where a damaged stretch shifts the schedule
     update_rate = EstimatorConfig().update_rate
     per_update = IMU_RATE / update_rate
     assert outcome.mag_taken <= FLIGHT_SECONDS * update_rate + 2

@@ -140,6 +140,7 @@ def test_the_compiled_cache_is_keyed_on_every_module_that_compiles_kernels() -> 
     assert _jit.compiles_kernels(b"from mavest._jit import callback_kernel\n")
     assert _jit.compiles_kernels(b"from mavest._jit import inplace_inlined_kernel\n")
     assert _jit.compiles_kernels(b"from mavest._jit import inplace_kernel\n")
+    assert _jit.compiles_kernels(b"from mavest._jit import inplace_exact_kernel\n")
 
 
 def test_an_inplace_kernel_cannot_allocate() -> None:

@@ -110,15 +110,19 @@ class EstimatorConfig:
     # A correction larger than this restarts the low-pass (0: never).
     accel_lowpass_restart_angle: float = math.radians(2.0)  # rad
     # The measurement updates (gravity, the magnetometer, the zero-rate update at
-    # rest) run at most this often; every sample is still predicted (attitude and
-    # covariance) and taken into the low-pass, whose error the filter carries, so
-    # an update sees every sample's accelerometer and a slower update rate loses
-    # next to nothing (BROAD: updates at 1/6 of its 286 Hz score as at every
-    # sample). It is what autopilots do (PX4's EKF2 runs at 100 Hz), for the same
-    # reason: the updates are most of a step's cost. 0: every sample. Without the
-    # low-pass (accel_lowpass_time = 0) every sample is an update: each sample's
-    # accelerometer is then information of its own.
-    update_rate: float = 50.0  # Hz
+    # rest) run about this often: one is due at the sample nearest to 1/update_rate
+    # after the last (ties to the earlier: at 100 Hz, every other sample). Every
+    # sample is still predicted (attitude and covariance) and taken into the
+    # low-pass, whose error the filter carries, so an update sees every sample's
+    # accelerometer and a slower update rate loses next to nothing (BROAD: updates
+    # at 1/7 of its 286 Hz score as at every sample). It is what autopilots do
+    # (PX4's EKF2 runs at 100 Hz), for the same reason: the updates are most of a
+    # step's cost. 40 Hz scores as 50 Hz did on every data set of tools/evidence.py
+    # (BROAD, the logs, the JSBSim flights); 33 and 25 Hz begin to cost (README,
+    # Known limits). 0: every sample. Without the low-pass (accel_lowpass_time = 0)
+    # every sample is an update: each sample's accelerometer is then information
+    # of its own.
+    update_rate: float = 40.0  # Hz
     # The vehicle's velocity, whose derivative is the linear acceleration the
     # low-pass averages away: Gauss–Markov, stationary σ (each world axis) and
     # correlation time.

@@ -590,7 +590,7 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
 # Exact but for one thing: the attitude noise a prediction adds reaches ε too
 # (ε moves with δθ, G Δθ), and the accumulated transition carries that as if it
 # came at the flush: the low-pass's dynamics over the rest of the interval (ωΔT
-# with ω = √2/τ: 1 % at 50 Hz for τ = 3 s) and an aided sample's share of it are
+# with ω = √2/τ: 1.2 % at 40 Hz for τ = 3 s) and an aided sample's share of it are
 # left out of that part of the noise. The low-pass's own noise (η, ξ) is
 # accumulated exactly.
 
@@ -1284,6 +1284,20 @@ def _lowpass_step(
 _SAME_DT = 1e-9
 
 
+# The updates' schedule: an update is due at the sample nearest to update_interval
+# after the last one. A tie (100 Hz samples with 40 Hz updates: 2.5 samples apart)
+# goes to the earlier sample; this slack (s) keeps the timestamps' last-bit jitter
+# from deciding it, which would make the schedule irregular.
+_SCHEDULE_SLACK = 1e-9
+
+
+@inplace_kernel
+def _update_due(c: CoefficientsRecord, elapsed: float, dt: float) -> bool:
+    """Whether ``elapsed`` since the last update reaches the sample (Δt = ``dt``) nearest
+    to the update interval (a NaN, none yet, is due)."""
+    return not elapsed < c.update_interval - 0.5 * dt - _SCHEDULE_SLACK
+
+
 @inplace_kernel
 def _step_coefficients(s: StateRecord, c: CoefficientsRecord, dt: float) -> None:
     """The coefficients that depend on Δt alone into ``s.step_coefficients``, computed
@@ -1737,7 +1751,7 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
     """
     if not _vector_is_finite(mag):
         return  # no magnetometer in this sample
-    if s.mag_state != 0 and t - s.t_mag < c.update_interval - 0.5 * dt:
+    if s.mag_state != 0 and not _update_due(c, t - s.t_mag, dt):
         s.flags |= _MAG_BETWEEN_UPDATES  # (its own schedule: the field may come at its own rate)
         return
     _clear_heading_report(s)
@@ -2090,7 +2104,7 @@ def _step_sample(
         _set_aside_mag(s, mag)
         return
     at_rest = _detect_rest(s, c, gyro, accel, dt)
-    if t - s.t_update < c.update_interval - 0.5 * dt:
+    if not _update_due(c, t - s.t_update, dt):
         # not due: the sample is predicted (above) and its accelerometer averaged
         # into the low-pass, whose error the covariance carries to the next update;
         # what the last update measured is still reported

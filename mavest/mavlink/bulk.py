@@ -27,7 +27,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from mavest import so3
-from mavest._jit import inplace_kernel
+from mavest._jit import inplace_exact_kernel
 from mavest.mavlink.messages import (
     _HIGHRES_INERTIAL_BITS,
     _HIGHRES_MAG_BITS,
@@ -128,12 +128,12 @@ def _x25_tables(count: int) -> np.ndarray:
 _X25 = _x25_tables(8)
 
 
-@inplace_kernel
+@inplace_exact_kernel
 def _x25_update(crc: int, byte: int) -> int:
     return (crc >> 8) ^ _X25[0, (crc & 0xFF) ^ byte]
 
 
-@inplace_kernel
+@inplace_exact_kernel
 def _x25_run(data: np.ndarray, start: int, stop: int, crc: int) -> int:
     """The CRC register after bytes [start, stop) of ``data``, from ``crc``."""
     k = start
@@ -155,7 +155,7 @@ def _x25_run(data: np.ndarray, start: int, stop: int, crc: int) -> int:
     return crc
 
 
-@inplace_kernel
+@inplace_exact_kernel
 def _scan(
     data: np.ndarray,
     position: int,
@@ -232,7 +232,7 @@ def scan(data: np.ndarray, position: int, last_us: int, capacity: int) -> Record
     return RecordIndex(*(np.ascontiguousarray(out[k, :count]) for k in range(8)))
 
 
-@inplace_kernel
+@inplace_exact_kernel
 def _gather(data: np.ndarray, payload: np.ndarray, length: np.ndarray, out: np.ndarray) -> None:
     width = out.shape[1]
     for i in range(payload.shape[0]):
@@ -323,7 +323,7 @@ ATTITUDE_DTYPE = wire_dtype(_ATTITUDE)
 ATTITUDE_QUATERNION_DTYPE = wire_dtype(_ATTITUDE_QUATERNION)
 
 
-@inplace_kernel
+@inplace_exact_kernel
 def _pack(
     payloads: np.ndarray,
     message_id: int,
@@ -359,7 +359,7 @@ def _pack(
         out_length[i] = 12 + length
 
 
-@inplace_kernel
+@inplace_exact_kernel
 def _euler_rows(q: np.ndarray, out: np.ndarray) -> None:
     for i in range(q.shape[0]):
         so3.euler_zyx_from_quat_into(q[i], out[i])
@@ -425,7 +425,7 @@ def _packed(
     return Packets(out, length)
 
 
-@inplace_kernel
+@inplace_exact_kernel
 def _interleave(
     data: np.ndarray,
     start: np.ndarray,

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mavest._jit import inplace_kernel
+from mavest._jit import inplace_exact_kernel
 
 WRAP_TICKS = 1 << 32
 
@@ -180,7 +180,7 @@ class StreamClock:
 _RUN_MAX_TICKS = 1 << 62
 
 
-@inplace_kernel
+@inplace_exact_kernel
 def _plain_run(
     ticks: np.ndarray,
     last: int,
