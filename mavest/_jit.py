@@ -256,7 +256,6 @@ def _compiled(**options: Any) -> Callable[[Callable[..., Any]], Any]:
 # nogil lets the pipeline run the filter in a worker thread without holding the
 # interpreter; error_model="numpy" makes x/0 give inf/nan as NumPy does, which
 # the kernels check for, instead of raising.
-_EXACT_OPTIONS = {"nogil": True, "error_model": "numpy"}
 # The numerical kernels also let LLVM fuse a product and the sum it enters into one
 # fused multiply-add (fastmath's "contract" alone: no reassociation, no assumption
 # about NaN or inf). Each fused pair rounds once instead of twice, so results move in
@@ -264,7 +263,7 @@ _EXACT_OPTIONS = {"nogil": True, "error_model": "numpy"}
 # in each; the filter's batch and online paths call one compiled step, and agree to
 # the bit (tests/test_online.py, tests/test_estimator_api.py). At 200 Hz: 6 % of a
 # sample (batch 0.69 → 0.65 µs).
-_KERNEL_OPTIONS = {**_EXACT_OPTIONS, "fastmath": {"contract"}}
+_KERNEL_OPTIONS = {"nogil": True, "error_model": "numpy", "fastmath": {"contract"}}
 kernel = _compiled()
 # The same, inlined into its callers at numba's IR level: for the small kernels that
 # pass over P several times a sample, where a call per block costs as much as the block

@@ -1468,6 +1468,18 @@ _EPS_ROOM = 0.9
 
 
 @inplace_kernel
+def _linear_limit_variance(c: CoefficientsRecord) -> float:
+    """(_LINEAR_LIMIT g)²: the variance of ε beyond which the low-passed direction waits."""
+    return (_LINEAR_LIMIT * c.gravity) ** 2
+
+
+@inplace_kernel
+def _horizontal_eps_variance(s: StateRecord) -> float:
+    """The larger of ε's horizontal variances, the ones the gravity update measures."""
+    return max(s.P[_EPS, _EPS], s.P[_EPS + 1, _EPS + 1])
+
+
+@inplace_kernel
 def _take_accel(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float) -> bool:
     """The accelerometer sample into the low-pass (when there is one); False if not finite."""
     if not _vector_is_finite(accel):
@@ -1512,14 +1524,12 @@ def accel_update(
     for i in range(3):
         s.w_z[i] = -f[i] / norm
     sphere.tangent_basis_into(s.w_z, s.w_Bz)
-    if lowpass:
-        # The measurement model is first order in ε/g: while f̄'s error is a
-        # sizeable fraction of g (one sample of a vehicle on the move) its
-        # direction says little and not linearly; wait until it has averaged.
-        eps_var = max(s.P[_EPS, _EPS], s.P[_EPS + 1, _EPS + 1])
-        if eps_var > (_LINEAR_LIMIT * c.gravity) ** 2:
-            s.flags |= _ACCEL_DEFERRED
-            return
+    # The measurement model is first order in ε/g: while f̄'s error is a sizeable
+    # fraction of g (one sample of a vehicle on the move) its direction says
+    # little and not linearly; wait until it has averaged.
+    if lowpass and _horizontal_eps_variance(s) > _linear_limit_variance(c):
+        s.flags |= _ACCEL_DEFERRED
+        return
     deviation = norm - c.gravity
     if abs(deviation) > c.accel_norm_tolerance:
         s.flags |= _ACCEL_REJECTED_NORM
@@ -1559,8 +1569,7 @@ def accel_update(
         r0, r1 = s.innovation[0], s.innovation[1]
         extra = max(0.5 * (r0 * r0 + r1 * r1) - 0.5 * (s.w_S[0, 0] + s.w_S[1, 1]), 0.0)
         if lowpass:
-            eps_var = max(s.P[_EPS, _EPS], s.P[_EPS + 1, _EPS + 1])
-            room = _EPS_ROOM * (_LINEAR_LIMIT * c.gravity) ** 2 - eps_var
+            room = _EPS_ROOM * _linear_limit_variance(c) - _horizontal_eps_variance(s)
             into_eps = min(extra * g2, max(room, 0.0))
             for a in range(2):
                 s.P[_EPS + a, _EPS + a] += into_eps
