@@ -7,6 +7,8 @@ the MAP problem, the reset against Monte Carlo, the left/right equivalence.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import reference as ref
@@ -21,11 +23,18 @@ from mavest.estimator.estimator import Estimator
 from mavest.estimator.layout import (
     CHARTS,
     ERROR_SIDES,
+    N_STATE_MAX,
     RESET_POLICIES,
     make_coefficients,
     new_state,
 )
-from mavest.estimator.recursion import _absorb_sample, _flush_pending, accel_update, predict
+from mavest.estimator.recursion import (
+    _absorb_sample,
+    _flush_pending,
+    _world_move_into,
+    accel_update,
+    predict,
+)
 from mavest.sim import ImuNoise, Motion, simulate
 
 G = 9.80665
@@ -409,8 +418,8 @@ def test_the_pending_transition_is_the_per_sample_propagation(
         coefficients = make_coefficients(config)
         assert coefficients["accumulate"][0] == 1
         state = new_state(coefficients)
-        A = rng.normal(size=(15, 15))
-        state["P"][0] = A @ A.T * 1e-3 + 1e-4 * np.eye(15)  # everything correlated
+        A = rng.normal(size=(N_STATE_MAX, N_STATE_MAX))
+        state["P"][0] = A @ A.T * 1e-3 + 1e-4 * np.eye(N_STATE_MAX)  # everything correlated
         state["q"][0] = Rotation.from_rotvec(rng.normal(0.0, 1.0, 3)).as_quat(scalar_first=True)
         state["b"][0] = rng.normal(0.0, 0.01, 3)
         state["initialised"] = 1
@@ -427,3 +436,27 @@ def test_the_pending_transition_is_the_per_sample_propagation(
         scale = np.sqrt(np.outer(np.diag(expected), np.diag(expected)))
         assert np.max(np.abs(P - expected) / scale) < tolerance
         assert np.max(np.abs(P - expected)[:6, :6] / scale[:6, :6]) < 1e-12
+
+
+def test_a_reset_turns_the_considered_states_by_its_turn_about_the_vertical() -> None:
+    """_world_move_into's W is the twist of the world frame's move: what is left of the
+    move without it (scipy composes them) turns nothing about the vertical, a swing about
+    a horizontal axis. W is a rotation, so the horizontal errors keep their variance
+    through a tilt, as the vertical components (not carried) would give it back."""
+    rng = np.random.default_rng(11)
+    W, work = np.empty((2, 2)), np.empty(4)
+    for _ in range(50):
+        q_old, move = Rotation.random(random_state=rng), Rotation.random(random_state=rng)
+        q_new = move * q_old
+        _world_move_into(
+            q_new.as_quat(scalar_first=True), q_old.as_quat(scalar_first=True), W, work
+        )
+        np.testing.assert_allclose(W @ W.T, np.eye(2), atol=1e-14)
+        twist = math.atan2(W[1, 0], W[0, 0])
+        swing = Rotation.from_euler("z", -twist) * move
+        assert abs(swing.as_quat(scalar_first=True)[3]) < 1e-12
+    tilt = Rotation.from_rotvec([0.3, -0.2, 0.0])
+    _world_move_into(
+        (tilt * q_old).as_quat(scalar_first=True), q_old.as_quat(scalar_first=True), W, work
+    )
+    np.testing.assert_allclose(W, np.eye(2), atol=1e-15)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -9,7 +11,9 @@ from mavest.estimator.linalg import (
     cholesky_into,
     gain_update,
     is_positive_definite,
+    left_multiply_rows2,
     left_multiply_rows3,
+    right_multiply_cols2,
     right_multiply_cols3,
 )
 
@@ -48,17 +52,27 @@ def test_gain_update_refuses_more_than_three_dimensions() -> None:
         gain_update(P, np.zeros((6, 4)), np.zeros((6, 4)), np.eye(4), 4)
 
 
-def test_block_products_are_the_dense_products() -> None:
+@pytest.mark.parametrize(
+    "size, left_multiply, right_multiply",
+    [
+        (3, left_multiply_rows3, right_multiply_cols3),
+        (2, left_multiply_rows2, right_multiply_cols2),
+    ],
+)
+def test_block_products_are_the_dense_products(
+    size: int, left_multiply: Callable[..., None], right_multiply: Callable[..., None]
+) -> None:
+    """The 3-row kernels with a 3×3 M; the 2-row ones with M's leading 2×2."""
     rng = np.random.default_rng(7)
     P = rng.normal(size=(15, 15))
     M = rng.normal(size=(3, 3))
     T = np.eye(15)
-    T[6:9, 6:9] = M
+    T[6 : 6 + size, 6 : 6 + size] = M[:size, :size]
     left = P.copy()
-    left_multiply_rows3(left, 6, M)
+    left_multiply(left, 6, M)
     np.testing.assert_allclose(left, T @ P, rtol=1e-13, atol=1e-13)
     right = P.copy()
-    right_multiply_cols3(right, 6, M)
+    right_multiply(right, 6, M)
     np.testing.assert_allclose(right, P @ T.T, rtol=1e-13, atol=1e-13)
 
 

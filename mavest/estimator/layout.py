@@ -26,8 +26,16 @@ CoefficientsRecord = np.void
 
 N_ERROR = 6  # the estimated error: δθ (3) and δb (3)
 # considered only: the low-passed accelerometer's error ε, the low-pass's rate
-# ḟ, and the vehicle's velocity v, each in world x, y, z
-N_CONSIDER = 9
+# ḟ, and the vehicle's velocity v, each along the horizontal world axes x, y.
+# Their vertical components are not carried: the gravity update does not measure
+# ε_z (a vertical error of f̄ changes its norm, not its direction), the prediction
+# moves ε's x, y only, each axis's low-pass is its own, and a reset turns the
+# considered states by its turn about the vertical alone (recursion's
+# _world_move_into), so nothing measured depends on them. (Turned by the reset's
+# whole rotation, as the low-pass's vectors are, its tilt would mix vertical
+# components into the horizontal: components of nearly the same statistics.)
+N_AXES = 2
+N_CONSIDER = 3 * N_AXES
 N_STATE_MAX = N_ERROR + N_CONSIDER
 N_SIGMA_MAX = 2 * N_STATE_MAX + 1
 
@@ -120,7 +128,7 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("error", np.int64),
         ("chart", np.int64),
         ("reset", np.int64),
-        ("n_state", np.int64),  # covariance dimension: 6, or 8 with the low-pass's ε
+        ("n_state", np.int64),  # covariance dimension: N_ERROR, or N_STATE_MAX with the low-pass
         ("max_iterations", np.int64),
         ("iteration_tolerance", np.float64),
         ("sigma_spread", np.float64),  # n + λ
@@ -181,7 +189,7 @@ STATE_DTYPE = np.dtype(
         # the estimate
         ("q", np.float64, 4),  # nominal attitude, body → NED, (w, x, y, z)
         ("b", np.float64, 3),  # nominal gyro bias, rad/s
-        # error covariance of [δθ (chart), δb, ε]; the first 6×6 is the estimate's
+        # error covariance of [δθ (chart), δb, ε, ḟ, v]; the first 6×6 is the estimate's
         ("P", np.float64, (N_STATE_MAX, N_STATE_MAX)),
         ("t", np.float64),  # time of the last sample taken, s
         ("t_accel", np.float64),  # time of the last undisturbed accelerometer update
@@ -214,7 +222,7 @@ STATE_DTYPE = np.dtype(
         # The covariance's transition since P's considered rows were last brought up to
         # date (recursion._flush_pending): the steps in it, P's 6×6 then, and the
         # linear map of the error x = [δθ, δb, u] (u = ε, ḟ, v) over them,
-        #   δθ ← Θθ δθ + Θb δb,   u ← (A ⊗ I₃) u + U [δθ; δb],
+        #   δθ ← Θθ δθ + Θb δb,   u ← (A ⊗ I₂) u + U [δθ; δb],
         # with the low-pass's own noise N (per axis, in ε, ḟ, v) added. P's 6×6 itself
         # is kept up to date every sample.
         ("pending_steps", np.int64),
@@ -282,7 +290,7 @@ STATE_DTYPE = np.dtype(
         ("w_C3", np.float64, (N_STATE_MAX, 3)),
         ("w_G", np.float64, (2, 3)),
         ("w_S3", np.float64, (3, 3)),
-        ("w_W", np.float64, (3, 3)),
+        ("w_W", np.float64, (2, 2)),  # the considered states' turn at a reset
         ("w_S", np.float64, (2, 2)),
         ("w_r", np.float64, 2),
         ("w_dx", np.float64, N_STATE_MAX),
@@ -382,8 +390,8 @@ def new_state(coefficients: np.ndarray) -> np.ndarray:
         + [c["initial_bias_var"]] * 3
     )
     if c["n_state"] > N_ERROR:  # the vehicle's velocity, the last considered block
-        velocity = slice(N_STATE_MAX - 3, N_STATE_MAX)
-        s["P"][0, velocity, velocity] = c["velocity_var"] * np.eye(3)
+        velocity = slice(N_STATE_MAX - N_AXES, N_STATE_MAX)
+        s["P"][0, velocity, velocity] = c["velocity_var"] * np.eye(N_AXES)
     s["t"] = -np.inf
     s["t_accel"] = -np.inf
     s["t_update"] = -np.inf

@@ -150,6 +150,30 @@ def right_multiply_cols3(P: np.ndarray, c0: int, M: np.ndarray) -> None:
 
 
 @inplace_inlined_kernel
+def left_multiply_rows2(P: np.ndarray, r0: int, M: np.ndarray) -> None:
+    """P[r0:r0+2, :] ← M₂ P[r0:r0+2, :] for M₂ = M[:2, :2] (M 2×2 or larger), in place
+    (as :func:`left_multiply_rows3`)."""
+    m00, m01 = M[0, 0], M[0, 1]
+    m10, m11 = M[1, 0], M[1, 1]
+    for j in range(P.shape[1]):
+        p0, p1 = P[r0, j], P[r0 + 1, j]
+        P[r0, j] = m00 * p0 + m01 * p1
+        P[r0 + 1, j] = m10 * p0 + m11 * p1
+
+
+@inplace_inlined_kernel
+def right_multiply_cols2(P: np.ndarray, c0: int, M: np.ndarray) -> None:
+    """P[:, c0:c0+2] ← P[:, c0:c0+2] M₂ᵀ for M₂ = M[:2, :2], in place (as
+    :func:`left_multiply_rows3`)."""
+    m00, m01 = M[0, 0], M[0, 1]
+    m10, m11 = M[1, 0], M[1, 1]
+    for i in range(P.shape[0]):
+        p0, p1 = P[i, c0], P[i, c0 + 1]
+        P[i, c0] = m00 * p0 + m01 * p1
+        P[i, c0 + 1] = m10 * p0 + m11 * p1
+
+
+@inplace_inlined_kernel
 def gain_update(P: np.ndarray, K: np.ndarray, C: np.ndarray, S: np.ndarray, m: int) -> None:
     """P ← P − K Cᵀ − C Kᵀ + K S Kᵀ: the covariance after a correction K·r with any gain.
 

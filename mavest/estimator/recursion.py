@@ -37,12 +37,14 @@ exact dynamics:
     prediction:          ε ← ε + g E W Δθ            (the attitude error moves, f̄ does not)
     absorbing a sample:  [ε; ḟ] ← Φ [ε; ḟ] + Γ (η + a)  (the low-pass's own step, exact for Δt)
     measurement:         r ≈ H δθ + H_ε ε,  H_ε = (1/g) B_zᵀ R̄ᵀ [e₃]×
-    moving the reference by E (a reset):  ε ← E ε,  ḟ ← E ḟ
+    moving the reference (a reset):  ε ← W_ψ ε,  ḟ ← W_ψ ḟ,  v ← W_ψ v
 
 (η the sample's noise; E = the x, y rows of [e₃]×; W = I for the left error,
-R̄ for the right, as Δθ must be taken in the world frame.) The vertical ε
-is invisible to the measurement and to the lag, until a large correction
-turns part of it into the horizontal: it is carried for that.
+R̄ for the right, as Δθ must be taken in the world frame; W_ψ the reset's turn
+about the vertical, :func:`_world_move_into`.) The vertical ε is invisible to
+the measurement and to the lag, and with the reset's turn about the vertical
+alone nothing moves it into the horizontal: ε, ḟ and v are carried along the
+world's x and y only (:data:`~mavest.estimator.layout.N_AXES`).
 
 Linear acceleration a is what the low-pass is for, and what makes its error
 coloured: it is the derivative of a bounded velocity. The vehicle's velocity
@@ -74,6 +76,7 @@ from mavest.estimator import gravity, magnetic
 from mavest.estimator.charts import local_into, reset_jacobian_into, retract_into
 from mavest.estimator.layout import (
     ERROR_LEFT,
+    N_AXES,
     N_CONSIDER,
     N_ERROR,
     N_STATE_MAX,
@@ -89,19 +92,21 @@ from mavest.estimator.linalg import (
     gain_update,
     inverse_3x3_into,
     is_positive_definite,
+    left_multiply_rows2,
     left_multiply_rows3,
+    right_multiply_cols2,
     right_multiply_cols3,
     symmetrise,
 )
 
 # Accelerometer readings below this fraction of g carry no usable direction.
 _MIN_ACCEL_FRACTION = 0.05
-# The considered dimensions follow δθ and δb: ε (x, y, z), the error of the
-# low-pass output the update measures, the low-pass's rate ḟ (x, y, z), and
-# the vehicle's velocity v (x, y, z), world frame.
+# The considered dimensions follow δθ and δb: ε (x, y), the error of the
+# low-pass output the update measures, the low-pass's rate ḟ (x, y), and
+# the vehicle's velocity v (x, y), world frame (layout.N_AXES).
 _EPS = N_ERROR
-_RATE = N_ERROR + 3
-_VEL = N_ERROR + 6
+_RATE = N_ERROR + N_AXES
+_VEL = N_ERROR + 2 * N_AXES
 N_STATE = N_STATE_MAX  # with the low-pass: what the pending transition carries
 # A floor under the measurement variance, so that S stays invertible (the
 # low-passed measurement's noise lives in ε).
@@ -210,40 +215,60 @@ def _transform_blocks(
     W: np.ndarray,
     with_considered: bool,
 ) -> None:
-    """P ← T P Tᵀ for T = blockdiag(A, I, W, W, W): A on δθ, W (3×3) on ε, ḟ and v.
+    """P ← T P Tᵀ for T = blockdiag(A, I, W, W, W): A on δθ, W (2×2, from
+    :func:`_world_move_into`) on ε, ḟ and v (their x, y: the module docstring).
 
-    T is block-diagonal, so each 3-row block is multiplied on its own:
-    O(n) per block instead of the O(n³) of a dense product. With
-    ``with_considered`` false, the considered blocks are left alone (W = I).
+    T is block-diagonal, so each block is multiplied on its own: O(n) per
+    block instead of the O(n³) of a dense product. With ``with_considered``
+    false, the considered blocks are left alone (W = I).
     """
     left_multiply_rows3(P, 0, A)
     right_multiply_cols3(P, 0, A)
     if with_considered and c.n_state > N_ERROR:
         for block in (_EPS, _RATE, _VEL):
-            left_multiply_rows3(P, block, W)
-            right_multiply_cols3(P, block, W)
+            left_multiply_rows2(P, block, W)
+            right_multiply_cols2(P, block, W)
 
 
 @inplace_kernel
 def _world_move_into(
     q_new: np.ndarray, q_old: np.ndarray, W: np.ndarray, work4: np.ndarray
 ) -> None:
-    """W = R(q_new ⊗ q_old⁻¹), the move of the estimated world frame.
+    """W (2×2) = the turn about the vertical of q_new ⊗ q_old⁻¹, the move of the
+    estimated world frame: what the considered states' horizontal errors take of it.
 
-    The low-pass's vectors are rotated by that move (they are world vectors of
-    the estimated frame), and so, exactly, are their errors: ε' = W ε.
+    The low-pass's vectors are rotated by the whole move R (they are world vectors
+    of the estimated frame), and so, exactly, are their errors: ε' = R ε. Of R, only
+    the turn about the vertical (the twist of a swing–twist split: the quaternion's
+    w and z) maps the horizontal onto itself; its tilt would move the vertical
+    components, which are not carried, into the horizontal. Their statistics are
+    the horizontal ones' (the same low-pass, the same velocity model; only the
+    attitude noise's share is horizontal alone), so the horizontal errors keep
+    their variance through the tilt: the twist, not R's horizontal 2×2 block,
+    which shrinks it by cos² of the tilt at every reset (with that block, a 60°
+    start's ANEES was 28.9; with the twist 5.97, in band: tools/consistency.py).
     """
     so3.quat_divide_right_into(q_new, q_old, work4)
-    so3.matrix_from_quat_into(work4, W)
+    w, z = work4[0], work4[3]
+    norm2 = w * w + z * z
+    if norm2 > 0.0:  # (0: a half turn about a horizontal axis, no twist to speak of)
+        cos_psi = (w * w - z * z) / norm2
+        sin_psi = 2.0 * w * z / norm2
+    else:
+        cos_psi, sin_psi = 1.0, 0.0
+    W[0, 0] = cos_psi
+    W[0, 1] = -sin_psi
+    W[1, 0] = sin_psi
+    W[1, 1] = cos_psi
 
 
 @inplace_kernel
 def _reset_covariance(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
-    """P ← T P Tᵀ, T = blockdiag(T_θ(δ̂θ), I, W, W): the reset of the covariance.
+    """P ← T P Tᵀ, T = blockdiag(T_θ(δ̂θ), I, W, W, W): the reset of the covariance.
 
     Called right after :func:`_move_nominal` moved the reference from w_p4 to
-    q: the low-pass's errors turn with the world-frame move (W), as its
-    vectors did.
+    q: the low-pass's errors turn with the world-frame move's turn about the
+    vertical (W, :func:`_world_move_into`); its vectors turned with the whole move.
     """
     reset_jacobian_into(dx[:3], c.error, c.chart, c.reset, s.w_m33)
     _world_move_into(s.q, s.w_p4, s.w_W, s.w_q4)
@@ -393,7 +418,7 @@ def _prime_filters(
     s.accel_world_lp[1, :] = 0.0
     s.lowpass_time = 0.0
     _absorb_sample(s, c, accel, dt, True)  # mean mode with nothing averaged yet: β = 0
-    for a in range(3):  # ḟ is known to be zero; a hair keeps P definite
+    for a in range(N_AXES):  # ḟ is known to be zero; a hair keeps P definite
         s.P[_RATE + a, _RATE + a] = 1e-12 * s.P[_EPS + a, _EPS + a]
 
 
@@ -417,15 +442,11 @@ def _reset_velocity_covariance(s: StateRecord, c: CoefficientsRecord) -> None:
 
 @inplace_kernel
 def _process_noise_rotation(s: StateRecord, c: CoefficientsRecord, phi: np.ndarray) -> None:
-    """w_n33 = the rotation in Q's cross term; w_R must hold R̄ before the step.
-
-    M = R̄ for the left error; Exp(−φ) for the right error, its image under
+    """The rotation M in Q's cross term: R̄ before the step for the left error, which
+    w_R must hold already; for the right error Exp(−φ), into w_n33, its image under
     the adjoint, so that left and right filters stay the same filter (DESIGN.md:
-    with the full reset they give the same estimate).
-    """
-    if c.error == ERROR_LEFT:
-        copy_matrix_into(s.w_n33, s.w_R)
-    else:
+    with the full reset they give the same estimate)."""
+    if c.error != ERROR_LEFT:
         so3.exp_into(phi, s.w_m33)
         for i in range(3):
             for j in range(3):
@@ -456,7 +477,8 @@ def _world_tilt_rows(s: StateRecord, c: CoefficientsRecord, out: np.ndarray) -> 
 
 @inplace_kernel
 def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float, n: int) -> None:
-    """P[:n, :n] += Q_d (Van Loan, with the cross term's rotation M in w_n33).
+    """P[:n, :n] += Q_d (Van Loan, with the cross term's rotation M, w_R or w_n33:
+    :func:`_process_noise_rotation`).
 
     With the considered ε (n > 6), its rows receive G = g E W times the
     attitude noise: the same noise moves δθ and, through it, ε.
@@ -467,11 +489,12 @@ def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float, n: int)
     q_ab = -0.5 * var_b * dt * dt
     q_bb = var_b * dt
     P = s.P
+    M = s.w_R if c.error == ERROR_LEFT else s.w_n33
     for i in range(3):
         P[i, i] += q_aa
         P[3 + i, 3 + i] += q_bb
         for j in range(3):
-            v = q_ab * s.w_n33[i, j]
+            v = q_ab * M[i, j]
             P[i, 3 + j] += v
             P[3 + j, i] += v
     if n == N_ERROR:
@@ -484,7 +507,7 @@ def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float, n: int)
             # Q_εθ = G Q_θθ = q_aa G ;  Q_εb = G Q_θb = q_ab G M
             cross_b = 0.0
             for k in range(3):
-                cross_b += G[a, k] * s.w_n33[k, j]
+                cross_b += G[a, k] * M[k, j]
             P[_EPS + a, j] += q_aa * G[a, j]
             P[j, _EPS + a] += q_aa * G[a, j]
             P[_EPS + a, 3 + j] += q_ab * cross_b
@@ -582,7 +605,7 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
 #
 # Between two updates nothing reads P's considered rows (ε, ḟ, v): only the
 # predictions and the low-pass's steps change them, and those are linear maps
-# of the error, so their product is accumulated per sample (3×3 and 9×6 blocks,
+# of the error, so their product is accumulated per sample (3×3 and 6×6 blocks,
 # a few dozen products) and applied once, at the next update or whatever else
 # needs the whole P (:func:`_flush_pending`). P's 6×6, what the estimate shows,
 # is propagated every sample as before.
@@ -649,15 +672,15 @@ def _accumulate_absorb(
     aided: bool,
 ) -> None:
     """The low-pass's step (:func:`_absorb_sample`) after the pending transition: u ←
-    (A ⊗ I₃) u with A = [[a00, a01, a02], [a10, a11, a12], [0, 0, γ]] (``A`` those seven),
+    (A ⊗ I₂) u with A = [[a00, a01, a02], [a10, a11, a12], [0, 0, γ]] (``A`` those seven),
     its noise (``noise``: N's upper triangle) added, and with a known acceleration
     :func:`_couple_aided_sample`'s [ε; ḟ] += [Γ₀; Γ₁] M δθ."""
     _open_pending(s)  # (a flush may have come between the prediction and this)
     a00, a01, a02, a10, a11, a12, gamma = A
     U = s.pending_U
     first = 0 if s.pending_aided else 3  # U's δθ columns are zero until an aided sample
-    for axis in range(3):
-        e, d, v = axis, 3 + axis, 6 + axis
+    for axis in range(N_AXES):
+        e, d, v = axis, N_AXES + axis, 2 * N_AXES + axis
         for j in range(first, N_ERROR):
             pe, pd, pv = U[e, j], U[d, j], U[v, j]
             U[e, j] = a00 * pe + a01 * pd + a02 * pv
@@ -699,20 +722,22 @@ def _accumulate_absorb(
     for j in range(N_ERROR):
         T = s.pending_theta if j < 3 else s.pending_bias
         k = j % 3
-        m0, m1, m2 = _times3(M, skew, T[0, k], T[1, k], T[2, k])
+        m0, m1, _ = _times3(M, skew, T[0, k], T[1, k], T[2, k])
         U[0, j] += g0 * m0
         U[1, j] += g0 * m1
-        U[2, j] += g0 * m2
-        U[3, j] += g1 * m0
-        U[4, j] += g1 * m1
-        U[5, j] += g1 * m2
+        U[N_AXES, j] += g1 * m0
+        U[N_AXES + 1, j] += g1 * m1
 
 
 @inplace_inlined_kernel
 def _along_stages(S: np.ndarray, stage: int, M: np.ndarray, row: int, j: int) -> float:
-    """(S ⊗ I₃) applied to column j of the considered rows of M, its entry (stage, axis)
+    """(S ⊗ I₂) applied to column j of the considered rows of M, its entry (stage, axis)
     with ``row`` = N_ERROR + axis: the considered rows are ε, ḟ, v of each axis."""
-    return S[stage, 0] * M[row, j] + S[stage, 1] * M[row + 3, j] + S[stage, 2] * M[row + 6, j]
+    return (
+        S[stage, 0] * M[row, j]
+        + S[stage, 1] * M[row + N_AXES, j]
+        + S[stage, 2] * M[row + 2 * N_AXES, j]
+    )
 
 
 @inplace_inlined_kernel
@@ -725,14 +750,14 @@ def _row_times_column(A: np.ndarray, i: int, B: np.ndarray, j: int) -> float:
 def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
     """Bring P's considered rows up to date: apply the pending transition (with x₆ =
     [δθ, δb], X = P's u rows' x₆ part and Y its u part at the interval's start,
-    P₆ = pending_P6, Φ₆ = [[Θθ, Θb], [0, I]], Λ = A ⊗ I₃):
+    P₆ = pending_P6, Φ₆ = [[Θθ, Θb], [0, I]], Λ = A ⊗ I₂):
 
         P_u6 ← (Λ X + U P₆) Φ₆ᵀ + Q_u6,
-        P_uu ← Λ Y Λᵀ + (Λ X + U P₆) Uᵀ + U (Λ X)ᵀ + I₃ ⊗ N + Q_uu.
+        P_uu ← Λ Y Λᵀ + (Λ X + U P₆) Uᵀ + U (Λ X)ᵀ + I₂ ⊗ N + Q_uu.
 
     P's 6×6 is already the interval's end; what its prediction noise added,
     Q₆ = P_6 − Φ₆ P₆ Φ₆ᵀ, reaches ε through G = g E W as each prediction's did:
-    Q_ε6 = G Q₆'s δθ rows, Q_εε = G Q₆θθ Gᵀ (ε x, y; see the section's comment).
+    Q_ε6 = G Q₆'s δθ rows, Q_εε = G Q₆θθ Gᵀ (see the section's comment).
     U's v rows are zero (nothing reaches v but its own noise), and its δθ columns
     until an aided sample: the sums skip them.
     """
@@ -746,8 +771,8 @@ def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
     theta = s.pending_theta
     bias = s.pending_bias
     first = 0 if s.pending_aided else 3  # U's first non-zero column
-    live = 0  # U's non-zero rows, as bits (unaided: ε and ḟ of x and y only)
-    for r in range(6):
+    live = 0  # U's non-zero rows, as bits (ε and ḟ at most; unaided: ε only)
+    for r in range(2 * N_AXES):
         for k in range(first, N_ERROR):
             if U[r, k] != 0.0:
                 live |= 1 << r
@@ -777,8 +802,8 @@ def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
     V = s.w_A
     Z = s.w_B
     for stage in range(3):
-        for axis in range(3):
-            r = N_ERROR + 3 * stage + axis
+        for axis in range(N_AXES):
+            r = N_ERROR + N_AXES * stage + axis
             for j in range(N_ERROR):
                 V[r, j] = _along_stages(S, stage, P, N_ERROR + axis, j)
                 acc = V[r, j]
@@ -789,20 +814,20 @@ def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
     # Λ Y's rows into w_T[6:, 6:], then the new P_uu (lower triangle, mirrored)
     LY = s.w_T
     for stage in range(3):
-        for axis in range(3):
-            r = N_ERROR + 3 * stage + axis
+        for axis in range(N_AXES):
+            r = N_ERROR + N_AXES * stage + axis
             for j in range(N_ERROR, N_STATE):
                 LY[r, j] = _along_stages(S, stage, P, N_ERROR + axis, j)
     N = s.pending_noise
     for r in range(N_ERROR, N_STATE):
-        stage_r, axis_r = (r - N_ERROR) // 3, (r - N_ERROR) % 3
+        stage_r, axis_r = (r - N_ERROR) // N_AXES, (r - N_ERROR) % N_AXES
         live_r = live >> (r - N_ERROR) & 1
         for q in range(N_ERROR, r + 1):
-            stage_q, axis_q = (q - N_ERROR) // 3, (q - N_ERROR) % 3
+            stage_q, axis_q = (q - N_ERROR) // N_AXES, (q - N_ERROR) % N_AXES
             acc = (
                 LY[r, N_ERROR + axis_q] * S[stage_q, 0]
-                + LY[r, N_ERROR + 3 + axis_q] * S[stage_q, 1]
-                + LY[r, N_ERROR + 6 + axis_q] * S[stage_q, 2]
+                + LY[r, N_ERROR + N_AXES + axis_q] * S[stage_q, 1]
+                + LY[r, N_ERROR + 2 * N_AXES + axis_q] * S[stage_q, 2]
             )
             if live >> (q - N_ERROR) & 1:  # Z Uᵀ
                 for k in range(first, N_ERROR):
@@ -812,7 +837,7 @@ def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
                     acc += U[r - N_ERROR, k] * V[q, k]
             if axis_r == axis_q:
                 acc += N[stage_r, stage_q]
-            if r < _EPS + 2 and q < _EPS + 2:  # Q_εε = G Q₆θθ Gᵀ
+            if r < _RATE and q < _RATE:  # Q_εε = G Q₆θθ Gᵀ
                 a = q - _EPS
                 acc += GQ[0, r - _EPS] * G[a, 0] + GQ[1, r - _EPS] * G[a, 1]
                 acc += GQ[2, r - _EPS] * G[a, 2]
@@ -824,12 +849,12 @@ def _flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
             acc = 0.0
             for k in range(3):
                 acc += Z[r, k] * theta[j, k] + Z[r, 3 + k] * bias[j, k]
-            if r < _EPS + 2:  # Q_ε6 = G Q₆'s δθ rows
+            if r < _RATE:  # Q_ε6 = G Q₆'s δθ rows
                 acc += GQ[j, r - _EPS]
             P[r, j] = acc
             P[j, r] = acc
             acc = Z[r, 3 + j]
-            if r < _EPS + 2:
+            if r < _RATE:
                 acc += GQ[3 + j, r - _EPS]
             P[r, 3 + j] = acc
             P[3 + j, r] = acc
@@ -962,11 +987,10 @@ def _gravity_jacobian(s: StateRecord, c: CoefficientsRecord) -> None:
     gravity.jacobian_into(s.w_R, s.w_h, s.w_z, s.w_Bz, c.error, s.w_H, s.w_m33, s.w_n33)
     if c.n_state == N_ERROR:
         return
-    # H_ε = (1/g) B_zᵀ R̄ᵀ [e₃]×: R̄ᵀ[e₃]× e_x = R̄ᵀ e_y, e_y ↦ −R̄ᵀ e_x, e_z ↦ 0;
-    # the low-pass's rate is not measured
+    # H_ε = (1/g) B_zᵀ R̄ᵀ [e₃]×: R̄ᵀ[e₃]× e_x = R̄ᵀ e_y, e_y ↦ −R̄ᵀ e_x (e_z ↦ 0,
+    # which is why ε_z is not carried); the low-pass's rate is not measured
     inv_g = 1.0 / c.gravity
     for k in range(2):
-        s.w_H[k, _EPS + 2] = 0.0
         for i in range(_RATE, c.n_state):
             s.w_H[k, i] = 0.0
         s.w_H[k, _EPS] = inv_g * (
@@ -981,8 +1005,8 @@ def _gravity_jacobian(s: StateRecord, c: CoefficientsRecord) -> None:
 def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: float) -> float:
     """C = Pi Hᵀ (w_C), S = H C + var I (w_S), K = C S⁻¹ (w_K); returns the NIS of w_r.
 
-    The gravity Jacobian (:func:`_gravity_jacobian`) is zero on the bias and on
-    ε_z, ḟ and v: the sums run over its other columns only (δθ, ε_x, ε_y), in
+    The gravity Jacobian (:func:`_gravity_jacobian`) is zero on the bias, ḟ and
+    v: the sums run over its other columns only (δθ, ε_x, ε_y), in
     the order of the full sums, which the exact zeros left unchanged. K's
     considered rows are zero (Schmidt: ε's mean is never estimated).
     """
@@ -1365,7 +1389,7 @@ def _absorb_sample(
         return
     n = c.n_state
     P = s.P
-    for axis in range(3):
+    for axis in range(N_AXES):
         e = _EPS + axis
         d = _RATE + axis
         v = _VEL + axis
@@ -1433,10 +1457,12 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
     With the known acceleration a removed, R̄f − a = Exp(−δθ_w)(a − g e₃) − a
     ≈ −g e₃ + [a]× δθ_w: a heading error now shows as a horizontal error of
     the sample (in a turn, the centripetal acceleration seen in the wrong
-    direction). With δθ_w = W δθ, M = [a]× W. Exact as a linear map of the
-    error, so P ← T P Tᵀ with T = I + (those rows): rows first (δθ's rows do
-    not change), then columns. This correlation is what lets the gravity
-    update see heading in turns, as a GPS-aided INS does.
+    direction). With δθ_w = W δθ, M = [a]× W, of which the x, y rows are
+    carried (M's z row, the sample's vertical error, is not: layout.N_AXES).
+    Exact as a linear map of the error, so P ← T P Tᵀ with T = I + (those
+    rows): rows first (δθ's rows do not change), then columns. This
+    correlation is what lets the gravity update see heading in turns, as a
+    GPS-aided INS does.
     """
     _aided_coupling(s, c)
     M = s.w_aid
@@ -1444,21 +1470,17 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
     P = s.P
     skew = c.error == ERROR_LEFT  # M = [a]×
     for j in range(n):  # rows: T P
-        m0, m1, m2 = _times3(M, skew, P[0, j], P[1, j], P[2, j])
+        m0, m1, _ = _times3(M, skew, P[0, j], P[1, j], P[2, j])
         P[_EPS, j] += g0 * m0
         P[_EPS + 1, j] += g0 * m1
-        P[_EPS + 2, j] += g0 * m2
         P[_RATE, j] += g1 * m0
         P[_RATE + 1, j] += g1 * m1
-        P[_RATE + 2, j] += g1 * m2
     for i in range(n):  # columns: (T P) Tᵀ
-        m0, m1, m2 = _times3(M, skew, P[i, 0], P[i, 1], P[i, 2])
+        m0, m1, _ = _times3(M, skew, P[i, 0], P[i, 1], P[i, 2])
         P[i, _EPS] += g0 * m0
         P[i, _EPS + 1] += g0 * m1
-        P[i, _EPS + 2] += g0 * m2
         P[i, _RATE] += g1 * m0
         P[i, _RATE + 1] += g1 * m1
-        P[i, _RATE + 2] += g1 * m2
 
 
 # The low-passed direction is used once f̄'s error σ_ε is below this fraction of g.
@@ -1630,13 +1652,15 @@ def _heading_step(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
 
 @inplace_kernel
 def _heading_variance(s: StateRecord, c: CoefficientsRecord) -> float:
-    """The variance of the attitude error about the world vertical (rad²)."""
-    _heading_step(s, c, 1.0)  # w_dx[:3] = the error-frame image of the vertical
-    var = 0.0
-    for i in range(3):
-        for j in range(3):
-            var += s.w_dx[i] * s.P[i, j] * s.w_dx[j]
-    return var
+    """The variance of the attitude error about the world vertical (rad²): vᵀ P_θθ v
+    with v the vertical in the error frame (P[2, 2] for the left error)."""
+    v0, v1, v2 = _vertical_in_error_frame(s, c)
+    P = s.P
+    return (
+        v0 * (P[0, 0] * v0 + P[0, 1] * v1 + P[0, 2] * v2)
+        + v1 * (P[1, 0] * v0 + P[1, 1] * v1 + P[1, 2] * v2)
+        + v2 * (P[2, 0] * v0 + P[2, 1] * v1 + P[2, 2] * v2)
+    )
 
 
 @inplace_kernel
@@ -2163,14 +2187,16 @@ def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
 @inplace_kernel
 def _state_is_plausible(s: StateRecord, c: CoefficientsRecord) -> bool:
     """Nominal finite and a unit quaternion, bias plausible, every variance within its
-    bound (NaN fails every test): what a sample between updates is checked for."""
+    bound (NaN fails every test): what a sample between updates is checked for. (There,
+    with the transition pending, the considered rows are not written: the estimate's
+    own variances are what can have changed.)"""
     q_norm2 = s.q[0] ** 2 + s.q[1] ** 2 + s.q[2] ** 2 + s.q[3] ** 2
     if not abs(q_norm2 - 1.0) < 1e-6:  # also NaN
         return False
     for i in range(3):
         if not abs(s.b[i]) <= _MAX_BIAS:
             return False
-    n = c.n_state
+    n = N_ERROR if s.pending_steps > 0 else c.n_state
     for i in range(n):
         bound = _MAX_ATTITUDE_VAR if i < 3 else _MAX_BIAS**2 if i < N_ERROR else _MAX_CONSIDERED_VAR
         if not 0.0 <= s.P[i, i] <= bound:
