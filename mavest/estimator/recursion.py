@@ -722,7 +722,7 @@ def _accumulate_absorb(
     for j in range(N_ERROR):
         T = s.pending_theta if j < 3 else s.pending_bias
         k = j % 3
-        m0, m1, _ = _times3(M, skew, T[0, k], T[1, k], T[2, k])
+        m0, m1 = _horizontal_times(M, skew, T[0, k], T[1, k], T[2, k])
         U[0, j] += g0 * m0
         U[1, j] += g0 * m1
         U[N_AXES, j] += g1 * m0
@@ -1417,21 +1417,17 @@ def _absorb_sample(
 
 
 @inplace_kernel
-def _times3(
+def _horizontal_times(
     M: np.ndarray, skew: bool, p0: float, p1: float, p2: float
-) -> tuple[float, float, float]:
-    """M (p0, p1, p2) for a 3×3 M; a skew M's zero diagonal is left out (its
-    products are exact zeros, so every sum keeps its value and order)."""
+) -> tuple[float, float]:
+    """The x, y rows of M (p0, p1, p2) for a 3×3 M (its z row is not carried:
+    layout.N_AXES); a skew M's zero diagonal is left out (its products are exact
+    zeros, so every sum keeps its value and order)."""
     if skew:
-        return (
-            M[0, 1] * p1 + M[0, 2] * p2,
-            M[1, 0] * p0 + M[1, 2] * p2,
-            M[2, 0] * p0 + M[2, 1] * p1,
-        )
+        return M[0, 1] * p1 + M[0, 2] * p2, M[1, 0] * p0 + M[1, 2] * p2
     return (
         M[0, 0] * p0 + M[0, 1] * p1 + M[0, 2] * p2,
         M[1, 0] * p0 + M[1, 1] * p1 + M[1, 2] * p2,
-        M[2, 0] * p0 + M[2, 1] * p1 + M[2, 2] * p2,
     )
 
 
@@ -1470,13 +1466,13 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
     P = s.P
     skew = c.error == ERROR_LEFT  # M = [a]×
     for j in range(n):  # rows: T P
-        m0, m1, _ = _times3(M, skew, P[0, j], P[1, j], P[2, j])
+        m0, m1 = _horizontal_times(M, skew, P[0, j], P[1, j], P[2, j])
         P[_EPS, j] += g0 * m0
         P[_EPS + 1, j] += g0 * m1
         P[_RATE, j] += g1 * m0
         P[_RATE + 1, j] += g1 * m1
     for i in range(n):  # columns: (T P) Tᵀ
-        m0, m1, _ = _times3(M, skew, P[i, 0], P[i, 1], P[i, 2])
+        m0, m1 = _horizontal_times(M, skew, P[i, 0], P[i, 1], P[i, 2])
         P[i, _EPS] += g0 * m0
         P[i, _EPS + 1] += g0 * m1
         P[i, _RATE] += g1 * m0
