@@ -14,6 +14,11 @@ defines kernels (editing the command line does not force a recompile).
 
 Loading a kernel from that cache skips numba's set-up for compiling (see
 :func:`_lean_cache_class`), which was the largest part of every command's start.
+That, and compiling without numba's runtime, take numba's internals: they are used
+only with the numba minor version they were tested with (:data:`TESTED_NUMBA`,
+which pyproject.toml bounds numba to). With any other, or with
+``MAVEST_NUMBA_PUBLIC=1``, kernels are numba's plain ``njit(cache=True)`` and its
+public options only: slower to start and to run, the same results.
 """
 
 from __future__ import annotations
@@ -39,9 +44,24 @@ def compiles_kernels(source: bytes) -> bool:
     )
 
 
+TESTED_NUMBA = "0.68"
+
+
+def _numba_internals_wanted() -> bool:
+    """Whether to use numba's internals: with the tested numba, unless
+    ``MAVEST_NUMBA_PUBLIC`` (set, not "0") asks for its public interface only."""
+    if os.environ.get("MAVEST_NUMBA_PUBLIC", "0") != "0":
+        return False
+    return numba.__version__.split(".")[:2] == TESTED_NUMBA.split(".")
+
+
+_NUMBA_INTERNALS = _numba_internals_wanted()
+
+
 def _sources_digest() -> str:
     package = Path(__file__).parent
-    digest = hashlib.sha256(numba.__version__.encode())
+    # (the two ways of compiling write entries that the other cannot read)
+    digest = hashlib.sha256(f"{numba.__version__} {_NUMBA_INTERNALS}".encode())
     for path in sorted(package.rglob("*.py")):
         source = path.read_bytes()
         if path.name == "_jit.py" or compiles_kernels(source):
@@ -141,6 +161,7 @@ def _lean_cache_class() -> type | None:
     try:
         import llvmlite.binding as ll
         from numba.core.caching import CompileResultCacheImpl, FunctionCache
+        from numba.core.ccallback import CFunc  # noqa: F401 (CallbackKernel compiles with it)
         from numba.core.codegen import CPUCodeLibrary, JITCPUCodegen, JitEngine
         from numba.core.compiler_lock import global_compiler_lock
         from numba.core.runtime import rtsys
@@ -233,18 +254,19 @@ def _lean_cache_class() -> type | None:
     return _KernelCache
 
 
-_KernelCache = _lean_cache_class()
+# (None: numba's public interface only)
+_KernelCache = _lean_cache_class() if _NUMBA_INTERNALS else None
 
 
 def _compiled(**options: Any) -> Callable[[Callable[..., Any]], Any]:
     """A decorator compiling with ``options``, cached on disk."""
     options = {**_KERNEL_OPTIONS, **options}
+    if _KernelCache is None:
+        options.pop("_nrt", None)  # (a private option)
+        return njit(cache=True, **options)
     compile_function = njit(**options)
-    cached = njit(cache=True, **options)
 
     def decorate(function: Callable[..., Any]) -> Any:
-        if _KernelCache is None:
-            return cached(function)
         dispatcher = compile_function(function)
         if hasattr(dispatcher, "_cache"):  # (not with NUMBA_DISABLE_JIT: plain Python)
             dispatcher._cache = _KernelCache(dispatcher.py_func)
@@ -256,14 +278,15 @@ def _compiled(**options: Any) -> Callable[[Callable[..., Any]], Any]:
 # nogil lets the pipeline run the filter in a worker thread without holding the
 # interpreter; error_model="numpy" makes x/0 give inf/nan as NumPy does, which
 # the kernels check for, instead of raising.
-# The numerical kernels also let LLVM fuse a product and the sum it enters into one
-# fused multiply-add (fastmath's "contract" alone: no reassociation, no assumption
-# about NaN or inf). Each fused pair rounds once instead of twice, so results move in
-# their last bits, and a function inlined into two callers may be fused differently
-# in each; the filter's batch and online paths call one compiled step, and agree to
-# the bit (tests/test_online.py, tests/test_estimator_api.py). At 200 Hz: 6 % of a
-# sample (batch 0.69 → 0.65 µs).
-_KERNEL_OPTIONS = {"nogil": True, "error_model": "numpy", "fastmath": {"contract"}}
+# No fastmath, not even its "contract" (a product and the sum it enters fused into one
+# multiply-add), so that results do not depend on how the code was built: numba links a
+# copy of every kernel a kernel calls into the caller's machine code, LLVM optimises each
+# copy in its caller's context and fuses differently, and a call runs whichever copy the
+# process loaded first: the callee's own when compiled in the process, a caller's when
+# loaded from the disk cache (a replay's estimates differed in their last bits, and its
+# output from mid-log on). Unfused, every copy rounds as the source says
+# (tests/test_determinism.py); fusing had saved 5 % of an online sample at 200 Hz.
+_KERNEL_OPTIONS = {"nogil": True, "error_model": "numpy", "fastmath": False}
 kernel = _compiled()
 # The same, inlined into its callers at numba's IR level: for the small kernels that
 # pass over P several times a sample, where a call per block costs as much as the block
@@ -278,10 +301,8 @@ inlined_kernel = _compiled(inline="always")
 # (numba passes the setting down to callees that do not set it themselves.)
 inplace_kernel = _compiled(_nrt=False)
 inplace_inlined_kernel = _compiled(inline="always", _nrt=False)
-# An inplace kernel without the fused multiply-adds: for the MAVLink kernels whose
-# results must not depend on where they are inlined (the clock's whole-file pass
-# and its sample-by-sample use give the same timestamps to the bit).
-inplace_exact_kernel = _compiled(_nrt=False, fastmath=False)
+# (every kernel is exact now: the MAVLink kernels' name for the same)
+inplace_exact_kernel = inplace_kernel
 
 
 class CallbackKernel:
@@ -314,21 +335,15 @@ class CallbackKernel:
 
     def _compile(self) -> Any:
         """numba's ``cfunc(signature, cache=True)``, loading from the cache as the
-        kernels do (:func:`_lean_cache_class`) where numba's internals allow."""
-        try:
-            from numba.core.ccallback import CFunc
-            from numba.core.sigutils import normalize_signature
-
-            compiled = CFunc(
-                self.function, normalize_signature(self.signature), {}, dict(_KERNEL_OPTIONS)
-            )
-            compiled._cache  # noqa: B018 (numba keeps its cache there: checked here)
-        except (ImportError, TypeError, AttributeError):
-            return numba.cfunc(self.signature, cache=True, **_KERNEL_OPTIONS)(self.function)
+        kernels do (:func:`_lean_cache_class`) where numba's internals are used."""
         if _KernelCache is None:
-            compiled.enable_caching()
-        else:
-            compiled._cache = _KernelCache(self.function)
+            return numba.cfunc(self.signature, cache=True, **_KERNEL_OPTIONS)(self.function)
+        from numba.core.ccallback import CFunc
+        from numba.core.sigutils import normalize_signature
+
+        options = dict(_KERNEL_OPTIONS)
+        compiled = CFunc(self.function, normalize_signature(self.signature), {}, options)
+        compiled._cache = _KernelCache(self.function)
         compiled.compile()
         return compiled
 
@@ -348,9 +363,13 @@ def without_dispatch(function: Any, *example: Any) -> Callable[..., Any]:
 
     Resolving a structured array's numba type on every call costs more than a
     small kernel does; a caller whose records keep their dtypes for life resolves
-    it once here. Falls back to the dispatcher if numba's internals differ (the
-    overloads' entry points are not a documented interface).
+    it once here. Where numba's internals are not used (the overloads' entry points
+    are not a documented interface), numba's eager form instead: compiled for these
+    types only, so that others raise TypeError as the entry point's unboxing does.
     """
+    if _KernelCache is None and not numba.config.DISABLE_JIT:
+        types = tuple(typeof(a) for a in example)
+        return numba.jit(types, cache=True, **function.targetoptions)(function.py_func)
     function(*example)
     overload = getattr(function, "overloads", {}).get(tuple(typeof(a) for a in example))
     return overload.entry_point if overload is not None else function

@@ -1,6 +1,7 @@
 """How kernels load from the disk cache: without numba's set-up for compiling, unless
-a kernel needs a symbol that only that set-up defines; numba's own cache where its
-internals are not what mavest expects."""
+a kernel needs a symbol that only that set-up defines; numba's own cache and public
+interface where asked, with a numba other than the one tested, or where its internals
+are not what mavest expects."""
 
 from __future__ import annotations
 
@@ -13,6 +14,9 @@ from pathlib import Path
 import pytest
 
 from mavest import _jit
+
+# (what the rest of this module tests is how numba's internals are used)
+lean = pytest.mark.skipif(_jit._KernelCache is None, reason="numba's public interface only")
 
 KERNELS = """
 import math
@@ -48,6 +52,7 @@ def _probe(directory: Path) -> tuple[str, bool]:
     return out[0], out[1] == "True"
 
 
+@lean
 def test_a_cached_kernel_loads_without_numbas_set_up_unless_a_symbol_is_missing(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -107,6 +112,7 @@ print(out.sum(), runtime_before, halves(4).sum())
 """
 
 
+@lean
 def test_a_kernel_loaded_from_the_cache_links_into_code_compiled_later(tmp_path: Path) -> None:
     """Its module's bitcode, not parsed when it loads, is when a new kernel calls it; a
     kernel without numba's runtime loads without initialising it."""
@@ -118,6 +124,7 @@ def test_a_kernel_loaded_from_the_cache_links_into_code_compiled_later(tmp_path:
     assert out.stdout.split() == ["1.5", "False", "3.0"]
 
 
+@lean
 def test_a_kernels_cache_is_set_up_when_first_used() -> None:
     assert _jit._KernelCache is not None
 
@@ -157,6 +164,7 @@ print(*(name in sys.modules for name in ("numba.np.arraymath", "scipy.linalg")),
 """
 
 
+@lean
 def test_a_replay_starts_without_numbas_compiler_or_scipy(tmp_path: Path) -> None:
     """Nor numba's runtime: the kernels a replay loads are all compiled without it."""
     from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
@@ -167,3 +175,75 @@ def test_a_replay_starts_without_numbas_compiler_or_scipy(tmp_path: Path) -> Non
     subprocess.run(command, capture_output=True, check=True)  # (compiles if not cached yet)
     out = subprocess.run(command, capture_output=True, text=True, check=True).stdout
     assert out.splitlines()[-1] == "False False False", out
+
+
+PUBLIC_PROBE = """
+import tiny_kernels
+from mavest import _jit
+
+roots = tiny_kernels.roots
+total = roots(5).sum()
+hits = sum(roots.stats.cache_hits.values())
+print(total, hits, type(roots._cache).__name__, _jit._KernelCache)
+"""
+
+
+def test_numbas_public_interface_when_asked(tmp_path: Path) -> None:
+    """``MAVEST_NUMBA_PUBLIC=1``: numba's own cache, which the next process loads from."""
+    (tmp_path / "tiny_kernels.py").write_text(KERNELS)
+    env = dict(
+        os.environ,
+        MAVEST_NUMBA_PUBLIC="1",
+        MAVEST_CACHE_DIR=str(tmp_path / "cache"),
+        PYTHONPATH=str(tmp_path),
+    )
+    command = [sys.executable, "-c", PUBLIC_PROBE]
+    runs = [
+        subprocess.run(command, env=env, capture_output=True, text=True, check=True).stdout.split()
+        for _ in range(2)
+    ]
+    assert runs[0][2:] == runs[1][2:] == ["FunctionCache", "None"]
+    assert [run[1] for run in runs] == ["0", "1"]  # compiled, then loaded
+    assert runs[0][0] == runs[1][0]
+
+
+@pytest.mark.parametrize(
+    ("version", "public", "internals"),
+    [
+        (f"{_jit.TESTED_NUMBA}.0", None, True),
+        (f"{_jit.TESTED_NUMBA}.5", "0", True),
+        (f"{_jit.TESTED_NUMBA}.0", "1", False),
+        ("0.99.0", None, False),
+        ("0.6", None, False),
+    ],
+)
+def test_numbas_internals_only_with_the_tested_numba_unless_told_not_to(
+    monkeypatch: pytest.MonkeyPatch, version: str, public: str | None, internals: bool
+) -> None:
+    import numba
+
+    monkeypatch.setattr(numba, "__version__", version)
+    if public is None:
+        monkeypatch.delenv("MAVEST_NUMBA_PUBLIC", raising=False)
+    else:
+        monkeypatch.setenv("MAVEST_NUMBA_PUBLIC", public)
+    assert _jit._numba_internals_wanted() is internals
+
+
+def test_numba_is_bounded_to_the_version_tested() -> None:
+    """pyproject.toml's bound and the version whose internals mavest uses agree, and the
+    numba the tests run on is that one (else the tests would run on its public interface
+    only, whatever they were meant to check)."""
+    import numba
+
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+
+    pyproject = Path(__file__).parents[1] / "pyproject.toml"
+    requirements = tomllib.loads(pyproject.read_text())["project"]["dependencies"]
+    (bound,) = [r for r in requirements if r.startswith("numba")]
+    major, minor = map(int, _jit.TESTED_NUMBA.split("."))
+    assert f"<{major}.{minor + 1}" in bound.split(","), bound
+    assert numba.__version__.startswith(_jit.TESTED_NUMBA + ".")
