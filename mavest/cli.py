@@ -4,8 +4,14 @@
 same pipeline, ``sim`` is a simulated vehicle (JSBSim) that streams like a
 flight controller or writes a tlog with its true attitude, ``demo`` flies that
 vehicle through the whole pipeline and scores it, ``estimate`` reads a CSV.
-A user's mistake ends with a one-line message and exit code 2, never a
-traceback.
+
+Exit codes, the same for every command:
+
+- 0: done (``run`` stopped by Ctrl-C or SIGTERM is done);
+- 1: the input held no IMU stream to estimate from (``run`` and ``replay`` alike);
+- 2: a mistake in what was asked or an unusable input: one line, never a traceback;
+- 130: interrupted before the end (``replay``, ``sim --tlog``, ``demo``, ``estimate``);
+  what was written so far is valid.
 """
 
 from __future__ import annotations
@@ -13,24 +19,29 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
+import io
 import logging
+import math
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
+from numba.core import event as numba_event
 
 from mavest import __version__
-from mavest._jit import cache_is_warm
 from mavest.estimator import ConfigError, estimate
 from mavest.mavlink.links import LinkError
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import KEY_ENVIRONMENT_VARIABLE, Signing
 from mavest.mavlink.tlog import TlogError
+from mavest.paths import OutputPathError, check_outputs, write_atomically
 from mavest.service.config import ServiceConfig
-from mavest.service.runners import Outputs, replay, run_live
+from mavest.service.log_repeats import RepeatLimiter
+from mavest.service.runners import Outputs, RunReport, replay, run_live
 from mavest.service.signals import stop_on_signals
 from mavest.viz.viewer import VIEWER_MODES, ViewerError
 
@@ -46,8 +57,54 @@ EXAMPLES = """examples:
 """
 
 
+EXIT_NO_IMU = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
 class UsageError(Exception):
     """A mistake in what the user asked for; printed as one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, but a mistake is one line: what is wrong and where to look
+    (argparse's own prints the whole usage first)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def _number(
+    low: float, high: float = math.inf, *, whole: bool = False, above: bool = False
+) -> Callable[[str], float]:
+    """An option's type: a finite number in [low, high] (``above``: > low; ``whole``: an
+    integer), so that --baud -5, --speed nan or --instance -1 are refused by name."""
+    if whole:
+        described = f"a whole number from {low:.0f}" + (
+            f" to {high:.0f}" if high < math.inf else " up"
+        )
+    else:
+        described = f"a number {'above' if above else 'from'} {low:g}" + (
+            f" to {high:g}" if high < math.inf else ""
+        )
+
+    def parse(text: str) -> float:
+        try:
+            value: float = int(text) if whole else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {described}") from None
+        if not math.isfinite(value) or value < low or value > high or (above and value == low):
+            raise argparse.ArgumentTypeError(f"{text} is not {described}")
+        return value
+
+    return parse
+
+
+_POSITIVE = _number(0.0, above=True)
+_NON_NEGATIVE = _number(0.0)
+_ID = _number(1, 255, whole=True)
+_PORT = _number(1, 65535, whole=True)
+_SEED = _number(0, 2**32 - 1, whole=True)
 
 
 def _load_config(args: argparse.Namespace) -> ServiceConfig:
@@ -83,15 +140,55 @@ def _setup_logging(args: argparse.Namespace) -> None:
         level = logging.DEBUG
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("mavest: %(message)s"))
+    REPEATS.reset()
+    handler.addFilter(REPEATS)
     root = logging.getLogger("mavest")
     root.handlers[:] = [handler]
     root.setLevel(level)
     root.propagate = False
 
 
-def _say_compiling() -> None:
-    if not cache_is_warm():
-        log.info("first run: compiling the filter (about a minute; later runs start at once)")
+class _CompileWatch(numba_event.Listener):
+    """Says, once, when numba starts compiling (a first run on a machine, or after an
+    upgrade), whichever path gets there first; and adds up the time it takes, which
+    the summary leaves out of the throughput. Kernels loaded from the cache raise no
+    compile event."""
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+        self._depth = 0
+        self._started = 0.0
+        self._said = False
+
+    def on_start(self, event: numba_event.Event) -> None:
+        if self._depth == 0:
+            self._started = time.perf_counter()
+            if not self._said:
+                self._said = True
+                log.info(
+                    "compiling the filter (first run, about a minute; later runs start at once)"
+                )
+        self._depth += 1
+
+    def on_end(self, event: numba_event.Event) -> None:
+        self._depth -= 1
+        if self._depth == 0:
+            self.seconds += time.perf_counter() - self._started
+
+
+# log lines that repeat one event, held back past a few (counted, and told at the end)
+REPEATS = RepeatLimiter()
+COMPILING = _CompileWatch()
+numba_event.register("numba:compile", COMPILING)
+
+
+def _refuse_overlaps(
+    inputs: dict[str, str | Path | None], outputs: dict[str, str | Path | None]
+) -> None:
+    try:
+        check_outputs(inputs, outputs)
+    except OutputPathError as error:
+        raise UsageError(str(error)) from None
 
 
 # --------------------------------------------------------------------------
@@ -127,10 +224,32 @@ def _signing(args: argparse.Namespace, config: ServiceConfig) -> Signing | None:
         raise UsageError(str(error)) from None
 
 
+def _output_paths(args: argparse.Namespace) -> dict[str, str | Path | None]:
+    return {"--out-tlog": args.out_tlog, "--rrd": args.rrd}
+
+
+def _finish(report: RunReport) -> int:
+    """Print the summary; the exit code of a run or replay (see the module's docstring)."""
+    report.compile_seconds = COMPILING.seconds
+    REPEATS.report(log)
+    print(report.summary())
+    if report.interrupted:
+        return EXIT_INTERRUPTED
+    return 0 if report.pipeline.streams else EXIT_NO_IMU
+
+
 def _run(args: argparse.Namespace) -> int:
     config = _load_config(args)
     signing = _signing(args, config)
-    _say_compiling()
+    device = args.connection if args.connection.startswith("/") else None
+    _refuse_overlaps(
+        {
+            "the --config file": args.config,
+            "the signing key": args.signing_key or config.signing.key_file or None,
+            "the serial device": device.split(",")[0] if device else None,
+        },
+        _output_paths(args),
+    )
     outputs = _outputs(args)
     try:
         report = asyncio.run(
@@ -138,33 +257,48 @@ def _run(args: argparse.Namespace) -> int:
                 args.connection, config, tuple(args.out), outputs, baud=args.baud, signing=signing
             )
         )
-    except (LinkError, TlogError, ViewerError) as error:
+    except (LinkError, TlogError, ViewerError, OutputPathError) as error:
         raise UsageError(str(error)) from None
-    print(report.summary())
-    return 0
+    # stopped by Ctrl-C or SIGTERM: the way a service ends, not an interruption
+    report.interrupted = False
+    return _finish(report)
 
 
 def _replay(args: argparse.Namespace) -> int:
     config = _load_config(args)
-    if args.speed is not None and args.speed <= 0:
-        raise UsageError("--speed must be positive (1 = real time)")
-    _say_compiling()
+    _refuse_overlaps(
+        {"the log being replayed": args.tlog, "the --config file": args.config}, _output_paths(args)
+    )
     outputs = _outputs(args)
 
-    async def main() -> Any:
+    async def main() -> RunReport:
         with stop_on_signals() as stop:
+
+            async def serve_on(report: RunReport) -> None:
+                # the served web viewer holds the recording: it goes when mavest does
+                report.compile_seconds = COMPILING.seconds
+                REPEATS.report(log)
+                print(report.summary(), flush=True)
+                log.info("replay done; the web viewer serves the recording until Ctrl-C")
+                await stop.wait()
+
             return await replay(
-                args.tlog, config, outputs, speed=args.speed, stop=stop, fast=not args.one_by_one
+                args.tlog,
+                config,
+                outputs,
+                speed=args.speed,
+                stop=stop,
+                fast=not args.one_by_one,
+                linger=serve_on,
             )
 
     try:
         report = asyncio.run(main())
-    except (TlogError, ViewerError) as error:
+    except (TlogError, ViewerError, OutputPathError) as error:
         raise UsageError(str(error)) from None
-    print(report.summary())
-    if not report.pipeline.streams:
-        return 1
-    return 0
+    if report.lingered:  # the summary was printed before serving; Ctrl-C ended the serving
+        return 0 if report.pipeline.streams else EXIT_NO_IMU
+    return _finish(report)
 
 
 # --------------------------------------------------------------------------
@@ -175,8 +309,7 @@ def _replay(args: argparse.Namespace) -> int:
 def _sim(args: argparse.Namespace) -> int:
     from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
 
-    if args.rate < 1 or args.rate > 2000:
-        raise UsageError("--rate must be 1–2000 Hz")
+    _refuse_overlaps({}, {"--tlog": args.tlog, "--report": args.report})
     autopilot = AUTOPILOTS[args.autopilot]
     if args.tlog is not None:
         if args.seconds is None:
@@ -192,7 +325,7 @@ def _sim(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     print(report.describe())
     if args.report is not None:
-        args.report.write_text(report.to_json())
+        write_atomically(args.report, report.to_json().encode())
     return 0
 
 
@@ -205,6 +338,11 @@ def _demo(args: argparse.Namespace) -> int:
     except OSError as error:
         raise UsageError(f"cannot create {output_dir}: {error.strerror}") from None
     flight = output_dir / "flight.tlog"
+    outputs = Outputs(tlog=output_dir / "mavest.tlog", rrd=output_dir / "mavest.rrd")
+    _refuse_overlaps(
+        {"the --config file": args.config},
+        {"flight.tlog": flight, "mavest.tlog": outputs.tlog, "mavest.rrd": outputs.rrd},
+    )
     print(
         f"mavest {__version__} demo: a {args.seconds:g} s Cessna 172 flight from JSBSim, turning "
         f"under its autopilot,\nstreaming ArduPilot RAW_IMU at {args.rate:g} Hz with noise, "
@@ -214,9 +352,9 @@ def _demo(args: argparse.Namespace) -> int:
     print(write_flight_tlog(flight, args.seconds, args.rate, AUTOPILOTS["ardupilot"], args.seed))
     print(f"  ({time.perf_counter() - start:.1f} s)\n")
     config = _load_config(args)
-    _say_compiling()
-    outputs = Outputs(tlog=output_dir / "mavest.tlog", rrd=output_dir / "mavest.rrd")
     report = asyncio.run(replay(flight, config, outputs, progress=False))
+    report.compile_seconds = COMPILING.seconds
+    REPEATS.report(log)
     print(report.summary())
     print(
         "\nThe truth is the flight model's attitude (SIMSTATE in the tlog). Open the recording "
@@ -231,22 +369,59 @@ def _demo(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------
 
 
-def _estimate_csv(args: argparse.Namespace) -> int:
-    config = _load_config(args).estimator
-    path: Path = args.input
+CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
+
+
+def _read_imu_csv(path: Path) -> np.ndarray:
+    """The CSV's samples as columns t, gx, gy, gz, ax, ay, az. A first line of names is a
+    header: with these seven names in any order it says which column is which."""
     if path.is_dir():
         raise UsageError(f"{path}: is a directory, not a CSV file")
-    if not path.is_file():
-        raise UsageError(f"{path}: no such file")
     try:
-        table = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
+        text = path.read_text()
+    except FileNotFoundError:
+        raise UsageError(f"{path}: no such file") from None
+    except UnicodeDecodeError:
+        raise UsageError(f"{path}: not a text file (a CSV of numbers is expected)") from None
+    except OSError as error:
+        raise UsageError(f"cannot read {path}: {error.strerror}") from None
+    lines = [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
+    order = list(range(len(CSV_COLUMNS)))
+    if lines and not _is_number(lines[0].split(",")[0]):
+        names = [name.strip().lower() for name in lines.pop(0).split(",")]
+        if sorted(names) == sorted(CSV_COLUMNS):
+            order = [names.index(column) for column in CSV_COLUMNS]
+    if not lines:
+        raise UsageError(f"{path}: no samples (expected rows of {', '.join(CSV_COLUMNS)})")
+    try:
+        table = np.loadtxt(lines, delimiter=",", ndmin=2)
     except ValueError as error:
         raise UsageError(f"{path}: not a CSV of numbers ({error})") from None
-    if table.shape[1] != 7:
+    if table.shape[1] != len(CSV_COLUMNS):
         raise UsageError(
-            f"{path}: expected 7 columns t, gx, gy, gz, ax, ay, az; found {table.shape[1]}"
+            f"{path}: expected 7 columns {', '.join(CSV_COLUMNS)}; found {table.shape[1]}"
         )
-    out = estimate(table[:, 0], table[:, 1:4], table[:, 4:7], config=config)
+    return table[:, order]
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _estimate_csv(args: argparse.Namespace) -> int:
+    config = _load_config(args).estimator
+    _refuse_overlaps(
+        {"the CSV being read": args.input, "the --config file": args.config}, {"-o": args.output}
+    )
+    table = _read_imu_csv(args.input)
+    try:
+        out = estimate(table[:, 0], table[:, 1:4], table[:, 4:7], config=config)
+    except ValueError as error:  # samples that cannot be estimated from (a wrong unit)
+        raise UsageError(f"{args.input}: {error}") from None
     euler = np.degrees(out.euler)
     sigma = np.degrees(np.sqrt(np.stack([out.cov[:, i, i] for i in range(3)], axis=1)))
     result = np.column_stack([out.t, out.q, euler, np.degrees(out.bias), sigma, out.flags])
@@ -254,11 +429,15 @@ def _estimate_csv(args: argparse.Namespace) -> int:
         "t,qw,qx,qy,qz,roll_deg,pitch_deg,yaw_deg,bias_x_dps,bias_y_dps,bias_z_dps,"
         "sigma_x_deg,sigma_y_deg,sigma_z_deg,flags"
     )
-    destination = sys.stdout if args.output is None else args.output
+    text = io.StringIO()
+    np.savetxt(text, result, delimiter=",", header=header, comments="", fmt="%.9g")
+    if args.output is None:
+        sys.stdout.write(text.getvalue())
+        return 0
     try:
-        np.savetxt(destination, result, delimiter=",", header=header, comments="", fmt="%.9g")
+        write_atomically(args.output, text.getvalue().encode())
     except OSError as error:
-        raise UsageError(f"{args.output}: {error.strerror}") from None
+        raise UsageError(f"cannot write {args.output}: {error.strerror}") from None
     return 0
 
 
@@ -282,19 +461,24 @@ def _add_stream_options(parser: argparse.ArgumentParser) -> None:
         choices=("auto", "all", *IMU_MESSAGES),
         help="IMU message to estimate from (default auto: the best one each vehicle sends)",
     )
-    group.add_argument("--instance", type=int, metavar="N", help="IMU instance (default: lowest)")
     group.add_argument(
-        "--system", type=int, metavar="ID", help="follow this vehicle only (default: all)"
+        "--instance",
+        type=_number(0, 255, whole=True),
+        metavar="N",
+        help="IMU instance (default: lowest)",
     )
     group.add_argument(
-        "--sysid", type=int, metavar="ID", help="mavest's system id (default: the vehicle's)"
+        "--system", type=_ID, metavar="ID", help="follow this vehicle only (default: all)"
     )
     group.add_argument(
-        "--compid", type=int, metavar="ID", help="mavest's component id (default 191)"
+        "--sysid", type=_ID, metavar="ID", help="mavest's system id (default: the vehicle's)"
+    )
+    group.add_argument(
+        "--compid", type=_ID, metavar="ID", help="mavest's component id (default 191)"
     )
     group.add_argument(
         "--attitude-rate",
-        type=float,
+        type=_NON_NEGATIVE,
         metavar="HZ",
         help="ATTITUDE rate (default 0: one per IMU sample)",
     )
@@ -313,11 +497,15 @@ def _add_stream_options(parser: argparse.ArgumentParser) -> None:
         "machine only; 0.0.0.0 exposes it to the network)",
     )
     group.add_argument(
-        "--rerun-port", type=int, default=9876, metavar="PORT", help="its gRPC port (default 9876)"
+        "--rerun-port",
+        type=_PORT,
+        default=9876,
+        metavar="PORT",
+        help="its gRPC port (default 9876)",
     )
     group.add_argument(
         "--rerun-web-port",
-        type=int,
+        type=_PORT,
         default=9090,
         metavar="PORT",
         help="the served web viewer's HTTP port (default 9090)",
@@ -326,7 +514,9 @@ def _add_stream_options(parser: argparse.ArgumentParser) -> None:
         "--out-tlog",
         type=Path,
         metavar="PATH",
-        help="write a tlog of every input message plus mavest's ATTITUDE",
+        help="write a tlog of every input message and everything mavest sends (ATTITUDE, "
+        "ATTITUDE_QUATERNION, HEARTBEAT; live also its requests to the vehicle and answers "
+        "to ground stations), in the MAVLink version of the vehicle",
     )
 
 
@@ -355,7 +545,7 @@ def _add_signing_options(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="mavest",
         description="Attitude and gyro-bias estimation for MAVLink vehicles: an error-state "
         "Kalman filter on SO(3) × R³ that says how sure it is.",
@@ -384,10 +574,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="CONNECTION",
         help="also send estimates here (repeatable)",
     )
-    run.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    run.add_argument(
+        "--baud",
+        type=_number(1, 20_000_000, whole=True),
+        default=115200,
+        help="serial baud rate (default 115200)",
+    )
     run.add_argument(
         "--request-rate",
-        type=float,
+        type=_number(0, 4000),
         metavar="HZ",
         help="ask the flight controller for the IMU message at this rate "
         "(MAV_CMD_SET_MESSAGE_INTERVAL; default: config, 0 = don't ask)",
@@ -405,7 +600,9 @@ def build_parser() -> argparse.ArgumentParser:
         "accuracy against the log's own ATTITUDE (and SIMSTATE, a simulator's truth).",
     )
     rep.add_argument("tlog", type=Path, metavar="FILE.tlog")
-    rep.add_argument("--speed", type=float, help="pace the replay (1 = real time; default: fast)")
+    rep.add_argument(
+        "--speed", type=_POSITIVE, help="pace the replay (1 = real time; default: fast)"
+    )
     rep.add_argument(
         "--one-by-one",
         action="store_true",
@@ -414,7 +611,10 @@ def build_parser() -> argparse.ArgumentParser:
         "compiled path, unless --speed paces the replay)",
     )
     rep.add_argument(
-        "--settle", type=float, metavar="S", help="seconds before accuracy is scored (default 10)"
+        "--settle",
+        type=_NON_NEGATIVE,
+        metavar="S",
+        help="seconds before accuracy is scored (default 10)",
     )
     _add_stream_options(rep)
     _add_common(rep)
@@ -436,12 +636,16 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="CONNECTION",
         help="where to stream (default udpout:127.0.0.1:14550)",
     )
-    sim.add_argument("--rate", type=float, default=200.0, help="IMU rate in Hz (default 200)")
+    sim.add_argument(
+        "--rate", type=_number(1, 2000), default=200.0, help="IMU rate in Hz (1–2000, default 200)"
+    )
     sim.add_argument(
         "--autopilot", choices=("ardupilot", "px4"), default="ardupilot", help="message flavour"
     )
-    sim.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
-    sim.add_argument("--seed", type=int, default=1, help="flight and noise seed (default 1)")
+    sim.add_argument(
+        "--seconds", type=_POSITIVE, help="stop after this long (default: until Ctrl-C)"
+    )
+    sim.add_argument("--seed", type=_SEED, default=1, help="flight and noise seed (default 1)")
     sim.add_argument("--tlog", type=Path, metavar="PATH", help="write a tlog instead of streaming")
     sim.add_argument("--report", type=Path, metavar="PATH", help="write the score as JSON")
     sim.set_defaults(handler=_sim)
@@ -453,9 +657,13 @@ def build_parser() -> argparse.ArgumentParser:
         "through mavest into a Rerun recording and an output tlog, and print the accuracy "
         "against the truth.",
     )
-    demo.add_argument("--seconds", type=float, default=120.0, help="flight length (default 120)")
-    demo.add_argument("--rate", type=float, default=400.0, help="IMU rate in Hz (default 400)")
-    demo.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    demo.add_argument(
+        "--seconds", type=_POSITIVE, default=120.0, help="flight length (default 120)"
+    )
+    demo.add_argument(
+        "--rate", type=_number(1, 2000), default=400.0, help="IMU rate in Hz (default 400)"
+    )
+    demo.add_argument("--seed", type=_SEED, default=1, help="random seed (default 1)")
     demo.add_argument(
         "--output-dir",
         type=Path,
@@ -480,21 +688,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if getattr(args, "seconds", 1.0) is not None and getattr(args, "seconds", 1.0) <= 0:
-        print("mavest: --seconds must be positive", file=sys.stderr)
-        return 2
-    if getattr(args, "rate", 1.0) <= 0:
-        print("mavest: --rate must be positive", file=sys.stderr)
-        return 2
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as done:  # --help, --version, or a mistake argparse found (said)
+        return int(done.code or 0)
     _setup_logging(args)
     try:
         return int(args.handler(args))
     except UsageError as error:
         print(f"mavest: {error}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     except KeyboardInterrupt:
-        return 130
+        return EXIT_INTERRUPTED
     except BrokenPipeError:  # the reader of our output went away (`mavest … | head`)
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 from test_hostile_input import CASES, Flight, _tlog_bytes, clean_flights
 
 from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
@@ -408,8 +409,11 @@ def test_aiding_fields_equal_pymavlink(name: str) -> None:
 # ------------------------------------------------------------------ encoding
 
 
+@pytest.mark.parametrize("mixed_versions", [False, True])
 @pytest.mark.parametrize("with_quaternion", [True, False])
-def test_attitude_packets_are_pymavlink_packets(with_quaternion: bool) -> None:
+def test_attitude_packets_are_pymavlink_packets(
+    with_quaternion: bool, mixed_versions: bool
+) -> None:
     rng = np.random.default_rng(7)
     n = 600
     stamps = rng.integers(0, 1 << 32, n)
@@ -420,24 +424,30 @@ def test_attitude_packets_are_pymavlink_packets(with_quaternion: bool) -> None:
     rates[::5] = 0.0
     euler[::10, 2] = 0.0
     q[::7, 3] = 0.0
+    # MAVLink 1 rows (samples that came as MAVLink 1) as the MAVLink 1 dialect packs them
+    version1 = rng.random(n) < 0.5 if mixed_versions else np.zeros(n, dtype=bool)
     mav = MAVLink(None, srcSystem=42, srcComponent=191)
+    mav1 = mavlink1.MAVLink(None, srcSystem=42, srcComponent=191)
     mav.seq = 200  # the sequence number wraps inside the batch
 
-    def pymavlinks(message: Any) -> bytes:
-        packet = message.pack(mav)
+    def pymavlinks(encode: str, *fields: Any, v1: bool) -> bytes:
+        packer = mav1 if v1 else mav
+        packer.seq = mav.seq
+        packet = getattr(packer, encode)(*fields).pack(packer)
         mav.seq = (mav.seq + 1) % 256
         return packet
 
     first, second = bulk.attitude_packets(
-        stamps, euler, rates, q if with_quaternion else None, 42, 191, 200
+        stamps, euler, rates, q if with_quaternion else None, 42, 191, 200, version1
     )
     for i in range(n):
-        stamp, rate = int(stamps[i]), [float(r) for r in rates[i]]
-        expected = pymavlinks(mav.attitude_encode(stamp, *map(float, euler[i]), *rate))
+        stamp, rate, v1 = int(stamps[i]), [float(r) for r in rates[i]], bool(version1[i])
+        expected = pymavlinks("attitude_encode", stamp, *map(float, euler[i]), *rate, v1=v1)
         assert first.data[i, : first.length[i]].tobytes() == expected
         if with_quaternion:
             assert second is not None
-            expected = pymavlinks(mav.attitude_quaternion_encode(stamp, *map(float, q[i]), *rate))
+            fields = (stamp, *map(float, q[i]), *rate)
+            expected = pymavlinks("attitude_quaternion_encode", *fields, v1=v1)
             assert second.data[i, : second.length[i]].tobytes() == expected
         else:
             assert second is None

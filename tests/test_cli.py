@@ -48,7 +48,7 @@ def test_estimate_reads_csv_and_writes_one_row_per_sample(tmp_path: Path) -> Non
         (["estimate", "{tmp}/words.csv"], "not a CSV of numbers"),
         (["estimate", "{tmp}/narrow.csv"], "expected 7 columns"),
         (["demo", "--config", "{tmp}/bad.toml"], "unknown estimator parameter"),
-        (["demo", "--seconds", "-1"], "must be positive"),
+        (["demo", "--seconds", "-1"], "argument --seconds: -1 is not a number above 0"),
         (["run", "udpin:nowhere"], "needs HOST:PORT"),
         (["sim", "--tlog", "{tmp}/x.tlog"], "--tlog needs --seconds"),
     ],

@@ -14,6 +14,7 @@ import pytest
 
 import mavest
 from mavest import ConfigError, Estimator, EstimatorConfig, StepFlags, estimate
+from mavest.estimator import InputError
 from mavest.evaluation.consistency import SCENARIOS, chi2_band, monte_carlo
 from mavest.evaluation.metrics import rmse_deg
 from mavest.sim import Motion, simulate
@@ -231,7 +232,7 @@ def test_default_is_consistent_and_the_classic_filter_is_not(scenario: str) -> N
     # NIS, χ²(2) if the model were exact; lower, as the low-pass's error is
     # carried whole in S while consecutive samples share most of it
     assert 0.5 < default.nis < 2.5, default
-    assert classic.anees > 2 * high, classic  # the heading-into-tilt trap of DESIGN.md
+    assert classic.anees > 2 * high, classic  # the exponential reset's heading-into-tilt trap
 
 
 def test_magnetometer_online_equals_batch_and_nan_rows_mean_none() -> None:
@@ -293,3 +294,103 @@ def test_shipped_default_config_is_the_built_in_default() -> None:
     path = Path(__file__).resolve().parents[1] / "configs" / "default.toml"
     assert EstimatorConfig.from_toml(path) == EstimatorConfig()
     assert mavest.__version__
+
+
+# ------------------------------------------------------------------ hostile input
+
+
+def _online_series(est: Estimator, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> list:
+    return [est.update(t[i], gyro[i], accel[i]) for i in range(len(t))]
+
+
+def _assert_online_equals_batch(online: list, batch: mavest.EstimateSeries) -> None:
+    np.testing.assert_array_equal([e.flags for e in online], batch.flags)
+    np.testing.assert_array_equal(np.array([e.q for e in online]), batch.q)
+    np.testing.assert_array_equal(np.array([e.cov for e in online]), batch.cov)
+
+
+@pytest.mark.parametrize("bad", [1e9, math.inf, -math.inf, -1e9, -30.0])
+def test_a_lone_timestamp_far_off_the_timeline_is_skipped_and_the_estimate_goes_on(
+    bad: float, online_path: str
+) -> None:
+    data = simulate(6.0, 100.0, seed=27)
+    k = 300
+    t = data.t.copy()
+    t[k] = t[k] + bad if math.isfinite(bad) else bad
+    out = estimate(t, data.gyro, data.accel)
+    assert out.flags[k] & StepFlags.TIME_OFF_TIMELINE, out[k].status
+    skipped = out.flags & StepFlags.SKIPPED != 0
+    assert np.flatnonzero(skipped).tolist() == [k]
+    # the sample is left out, nothing else: the same estimates as without it
+    keep = np.arange(len(t)) != k
+    without = estimate(t[keep], data.gyro[keep], data.accel[keep])
+    np.testing.assert_array_equal(out.q[keep], without.q)
+    np.testing.assert_array_equal(out.cov[keep], without.cov)
+    _assert_online_equals_batch(_online_series(Estimator(), t, data.gyro, data.accel), out)
+
+
+def test_time_that_jumps_and_stays_is_a_gap_and_time_that_goes_back_a_restart(
+    online_path: str,
+) -> None:
+    data = simulate(20.0, 100.0, seed=28)
+    k = 800
+    for shift, taken in ((1000.0, StepFlags.GAP_REALIGNED), (-7.5, StepFlags.TIME_RESTARTED)):
+        t = data.t.copy()
+        t[k:] += shift
+        out = estimate(t, data.gyro, data.accel)
+        confirm = EstimatorConfig().timeline_confirm
+        off = np.flatnonzero(out.flags & StepFlags.SKIPPED).tolist()
+        assert off == list(range(k, k + confirm - 1))
+        assert all(out.flags[i] & StepFlags.TIME_OFF_TIMELINE for i in off)
+        assert out.flags[k + confirm - 1] & taken, out[k + confirm - 1].status
+        # the estimate goes on from there as from any start
+        settled = np.arange(len(t)) > k + 500
+        assert inclination_rmse(out.q, data.q_true, settled) < 1.5
+        online = _online_series(Estimator(), t, data.gyro, data.accel)
+        _assert_online_equals_batch(online, out)
+    # timeline_confirm = 1: every time is believed (as before, for a caller that
+    # confirms its timeline itself): a jump is a gap at once
+    t = data.t.copy()
+    t[k:] += 1000.0
+    out = estimate(t, data.gyro, data.accel, config=EstimatorConfig(timeline_confirm=1))
+    assert out.flags[k] & StepFlags.GAP_REALIGNED and not np.any(out.flags & StepFlags.SKIPPED)
+    t[k + 1] = math.inf  # ... but no infinite one
+    out = estimate(t, data.gyro, data.accel, config=EstimatorConfig(timeline_confirm=1))
+    assert np.flatnonzero(out.flags & StepFlags.SKIPPED).tolist() == [k + 1]
+
+
+@pytest.mark.parametrize(
+    ("scale", "unit", "factor"),
+    [(1.0 / G, "g", "9.80665"), (1000.0 / G, "mg", "0.00980665"), (1000.0, "mm/s²", "0.001")],
+)
+def test_an_accelerometer_in_another_unit_is_named(
+    scale: float, unit: str, factor: str, online_path: str
+) -> None:
+    data = simulate(3.0, 100.0, seed=29)
+    accel = data.accel * scale
+    with pytest.raises(InputError, match=rf"looks like {unit}, .*\(multiply by {factor}\)"):
+        estimate(data.t, data.gyro, accel)
+    assert issubclass(InputError, ValueError)
+    for batch_fed in (False, True):
+        est = Estimator(batch_fed=batch_fed)
+        with pytest.warns(UserWarning, match=rf"norm ≈ \S+: looks like {unit}") as caught:
+            online = _online_series(est, data.t, data.gyro, accel)
+        assert len(caught) == 1  # once
+        assert caught[0].filename == __file__  # where update was called
+        flagged = np.array([e.flags & StepFlags.ACCEL_WRONG_UNIT != 0 for e in online])
+        assert flagged[-1] and flagged.mean() > 0.8
+        assert all(e.flags & StepFlags.NOT_INITIALISED for e in online)
+
+
+def test_free_fall_or_high_g_at_the_start_is_not_taken_for_another_unit() -> None:
+    data = simulate(10.0, 100.0, seed=30)
+    rng = np.random.default_rng(30)
+    for start in (
+        rng.normal(0.0, 0.05, (100, 3)),  # a second of free fall
+        np.tile([0.0, 0.0, -4.0 * G], (100, 1)),  # a second at 4 g (a launch)
+    ):
+        accel = data.accel.copy()
+        accel[:100] = start
+        out = estimate(data.t, data.gyro, accel)
+        assert not np.any(out.flags & StepFlags.ACCEL_WRONG_UNIT)
+        assert out.flags[-1] & StepFlags.NOT_INITIALISED == 0

@@ -20,7 +20,7 @@ import pytest
 from pymavlink import mavutil
 
 import mavest
-from mavest.cli import main
+from mavest.cli import EXIT_NO_IMU, main
 from mavest.estimator import ConfigError
 from mavest.mavlink.links import Endpoint, Link
 from mavest.mavlink.messages import Encoder, MAVLink, mavlink2
@@ -240,7 +240,7 @@ def test_signing_table_in_a_config_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="unknown signing parameter"):
         ServiceConfig.from_toml(path)
     _write(path, '[signing]\nrequire_signed = "yes"\n')
-    with pytest.raises(ConfigError, match="require_signed must be true/false"):
+    with pytest.raises(ConfigError, match="require_signed = 'yes': expected true or false"):
         ServiceConfig.from_toml(path)
 
 
@@ -440,7 +440,7 @@ def test_live_require_signed_drops_an_unsigned_vehicle(tmp_path: Path) -> None:
         )
     finally:
         code, summary = service.stop()
-    assert code == 0
+    assert code == EXIT_NO_IMU  # every IMU packet was dropped: no stream
     assert report.sent > 100 and report.answered == 0 and report.unmatched == 0
     assert "no IMU stream found" in summary and "sent" not in summary.split("signing:")[1]
     dropped = int(summary.split("unsigned dropped")[0].rsplit(",", 1)[1])
@@ -464,7 +464,9 @@ def _assert_only_the_interval_command(messages: list[Any]) -> None:
 
 def test_the_service_encodes_no_command_but_the_interval_request() -> None:
     """Every MAVLink message the service's code can build (the simulated vehicle aside):
-    ``*_encode``/``*_send`` calls and message classes built directly."""
+    ``*_encode``/``*_send`` calls and message classes built directly. Besides the
+    estimates, HEARTBEAT and the interval request: answers to requests addressed to
+    mavest (COMMAND_ACK, an FTP NAK, PARAM_ERROR), which command nothing."""
     package = Path(mavest.__file__).parent
     built: Counter[str] = Counter()
     command_arguments = []
@@ -486,5 +488,8 @@ def test_the_service_encodes_no_command_but_the_interval_request() -> None:
         "attitude_quaternion_encode",
         "heartbeat_encode",
         "command_long_encode",
+        "command_ack_encode",
+        "file_transfer_protocol_encode",
+        "param_error_encode",
     }, built
     assert command_arguments == ["mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL"]

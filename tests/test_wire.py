@@ -8,6 +8,7 @@ import struct
 from typing import Any
 
 import pytest
+from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 
 from mavest.mavlink import wire
 from mavest.mavlink.messages import Encoder, MAVLink, mavlink2
@@ -174,3 +175,54 @@ def test_encoder_packets_are_pymavlinks_byte_for_byte() -> None:
         assert packet == expected
     assert mavlink2.MAVLINK_MSG_ID_ATTITUDE in wire._LAYOUTS  # ours decode as ATTITUDE again
     assert wire.decode_datagram(ours.attitude(1, (0.1, 0.2, 0.3), (0.0, 0.0, 0.0))) is not None
+
+
+def test_mavlink1_packets_are_the_mavlink1_dialects_byte_for_byte() -> None:
+    """MAVLink 1 is what a MAVLink 1 sender packs: the base fields whole, no extensions
+    (pymavlink's MAVLink 2 dialect keeps them when forced to MAVLink 1), CRC the same."""
+    rng = random.Random(5)
+    checked = 0
+    for message_id, message_class in mavlink1.mavlink_map.items():
+        if not set(message_class.unpacker.format.lstrip("<")) <= set(_DRAW):
+            continue  # arrays and text: the same bytes, but no random values drawn here
+        checked += 1
+        theirs = _random_message(message_class, rng)
+        mav = mavlink1.MAVLink(None, srcSystem=42, srcComponent=191)
+        mav.seq = message_id % 256
+        expected = theirs.pack(mav)
+        payload = expected[mavlink2.HEADER_LEN_V1 : -2]
+        extensions = mavlink2.mavlink_map[message_id].unpacker.size - len(payload)
+        packet = wire.pack(
+            message_id,
+            message_class.crc_extra,
+            payload + bytes(extensions),
+            message_id % 256,
+            42,
+            191,
+            mavlink1=True,
+        )
+        assert packet == expected, message_class.msgname
+    assert checked > 100
+
+
+def test_encoder_speaks_mavlink1_as_the_mavlink1_dialect() -> None:
+    ours = Encoder(42, 191)
+    theirs = mavlink1.MAVLink(None, srcSystem=42, srcComponent=191)
+    rates = (0.25, -0.5, 0.0)
+    expected = [
+        theirs.attitude_encode(7, 0.1, 0.2, 0.3, *rates),
+        theirs.attitude_quaternion_encode(7, 1.0, 0.0, 0.0, 0.0, *rates),
+        theirs.heartbeat_encode(18, 8, 0, 0, 4, 3),
+        theirs.command_long_encode(1, 1, 511, 0, 27.0, 5000.0, 0, 0, 0, 0, 0),
+        theirs.command_ack_encode(512, 3),
+    ]
+    packets = [
+        ours.attitude(7, (0.1, 0.2, 0.3), rates, mavlink1=True),
+        ours.attitude_quaternion(7, (1.0, 0.0, 0.0, 0.0), rates, mavlink1=True),
+        ours.heartbeat(mavlink1=True),
+        ours.set_message_interval(1, 1, "RAW_IMU", 200.0, mavlink1=True),
+        ours.command_ack(512, 3, 255, 190, mavlink1=True),
+    ]
+    for packet, message in zip(packets, expected, strict=True):
+        assert packet == message.pack(theirs)
+        theirs.seq = (theirs.seq + 1) % 256

@@ -1,7 +1,13 @@
 """The attitude filter: configuration, charts, the recursion, and the public API."""
 
 from mavest.estimator.config import ConfigError, EstimatorConfig
-from mavest.estimator.estimator import Estimate, EstimateSeries, Estimator, estimate
+from mavest.estimator.estimator import (
+    Estimate,
+    EstimateSeries,
+    Estimator,
+    InputError,
+    estimate,
+)
 from mavest.estimator.layout import StepFlags
 
 __all__ = [
@@ -10,6 +16,7 @@ __all__ = [
     "EstimateSeries",
     "Estimator",
     "EstimatorConfig",
+    "InputError",
     "StepFlags",
     "estimate",
 ]

@@ -73,7 +73,10 @@ cdef Py_ssize_t ROW_WIDTH = layout.ROW_WIDTH
 cdef Py_ssize_t BLOCK_ROWS = online.BLOCK_ROWS
 cdef cnp.npy_intp N_ERROR = layout.N_ERROR
 
+cdef long long ACCEL_WRONG_UNIT = online.ACCEL_WRONG_UNIT
+
 cdef object _components3 = online.components3
+cdef object _warn_accel_unit = online.warn_accel_unit
 cdef object _row_of = online.row_of
 cdef object _describe = layout.StepFlags.describe
 cdef object _STATE_DTYPE = layout.STATE_DTYPE
@@ -407,6 +410,8 @@ cdef class Online:
             sample[6], sample[7], sample[8],
             sample[9], sample[10], sample[11],
         )
+        if (<long long>out[ROW_FLAGS]) & ACCEL_WRONG_UNIT:
+            _warn_accel_unit(self._state, 1)  # (no frame of ours: 1 is the caller's)
         estimate = Estimate.__new__(Estimate)
         estimate._block = self._block
         estimate._row = out

@@ -4,8 +4,8 @@ Following VQF's split, three things are kept apart:
 :class:`EstimatorConfig` (this module: user-facing parameters, immutable),
 the coefficients derived from it once (:mod:`mavest.estimator.layout`), and the
 filter state that changes every sample. Noise is given as densities, never per
-sample, so one configuration serves a 1 Hz and a 2 kHz IMU alike (DESIGN.md: a
-per-sample σ tuned at 200 Hz got worse at 1 kHz).
+sample, so one configuration serves a 1 Hz and a 2 kHz IMU alike (a per-sample σ
+tuned at 200 Hz got worse at 1 kHz: docs/design.md#conventions).
 """
 
 from __future__ import annotations
@@ -13,11 +13,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+
+from mavest import timeline
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -45,15 +48,15 @@ class ConfigError(ValueError):
 class EstimatorConfig:
     """Every parameter of the attitude filter.
 
-    Structure (see DESIGN.md and the Monte Carlo consistency tool for why the
-    defaults are what they are):
+    Structure (see docs/design.md#heading-tilt-chart and the Monte Carlo consistency
+    tool for why the defaults are what they are):
 
     update
         ``"ekf"`` one Gauss–Newton step; ``"iterated"`` Gauss–Newton with the
         prior-correction term until ``iteration_tolerance``; ``"sigma_point"``
         USQUE-style unscented prediction and update.
     error
-        ``"left"``: R = Exp(δθ) R̄, δθ in the world frame (seed 000);
+        ``"left"``: R = Exp(δθ) R̄, δθ in the world frame (docs/design.md#state-and-error);
         ``"right"``: R = R̄ Exp(δθ), δθ in the body frame.
     chart
         How the 3-D attitude error is mapped onto rotations. ``"exp"``: the
@@ -88,7 +91,7 @@ class EstimatorConfig:
     gravity: float = STANDARD_GRAVITY
 
     # Accelerometer robustness in dynamic motion.
-    accel_norm_inflation: float = 0.0  # σ grows by this × |‖a‖ − g| (0: off; see the README)
+    accel_norm_inflation: float = 0.0  # σ grows by this × |‖a‖ − g| (0: off; docs/limits.md)
     accel_norm_tolerance: float = 3.0  # m/s²: |‖a‖ − g| beyond this is not gravity
     # NIS (χ², 2 dof) beyond which the sample's noise is inflated to match its
     # innovation (0: off); disturbed this long, the attitude gets the blame.
@@ -118,8 +121,8 @@ class EstimatorConfig:
     # at 1/7 of its 286 Hz score as at every sample). It is what autopilots do
     # (PX4's EKF2 runs at 100 Hz), for the same reason: the updates are most of a
     # step's cost. 40 Hz scores as 50 Hz did on every data set of tools/evidence.py
-    # (BROAD, the logs, the JSBSim flights); 33 and 25 Hz begin to cost (README,
-    # Known limits). 0: every sample. Without the low-pass (accel_lowpass_time = 0)
+    # (BROAD, the logs, the JSBSim flights); 33 and 25 Hz begin to cost
+    # (docs/limits.md). 0: every sample. Without the low-pass (accel_lowpass_time = 0)
     # every sample is an update: each sample's accelerometer is then information
     # of its own.
     update_rate: float = 40.0  # Hz
@@ -195,6 +198,15 @@ class EstimatorConfig:
 
     # Time: a step longer than this is a gap; the attitude is re-aligned.
     max_dt: float = 2.0  # s
+    # A time far off the timeline (forward by more than max_jump, back by more than
+    # mavest.timeline.REORDER_WINDOW) is believed only when it and the samples after
+    # it, timeline_confirm in a row, continue from it: a single corrupted timestamp
+    # is skipped (StepFlags.TIME_OFF_TIMELINE), a jump that stays is a gap, and time
+    # that went back and stayed a restart (StepFlags.TIME_RESTARTED). 1: every time
+    # is believed at once, for a caller that confirms its timeline itself (the
+    # service's clock does, and holds a new timeline's first samples meanwhile).
+    max_jump: float = timeline.MAX_JUMP  # s
+    timeline_confirm: int = timeline.CONFIRM
 
     # A gyro reading this large on any axis is taken as clipped (inf: never): the
     # sensor's range, a little under it where calibration scales the raw limit;
@@ -216,6 +228,8 @@ class EstimatorConfig:
             "error = 'left'",
         )
         _require(self.max_iterations >= 1, "max_iterations must be at least 1")
+        _require(self.timeline_confirm >= 1, "timeline_confirm must be at least 1")
+        _require(self.max_jump > 0.0, f"max_jump must be > 0 (inf: never), got {self.max_jump}")
         _require(self.gyro_clip > 0.0, f"gyro_clip must be > 0 (inf: never), got {self.gyro_clip}")
         _require(0.0 < self.accel_lowpass_damping <= 1.0, "accel_lowpass_damping must be in (0, 1]")
         for name in (
@@ -301,19 +315,52 @@ class EstimatorConfig:
                 f"unknown estimator parameter(s): {', '.join(unknown)}; "
                 f"known: {', '.join(sorted(known))}"
             )
-        converted = dict(values)
-        for name in ("initial_bias", "compass_ofs", "compass_dia", "compass_odi"):
-            if name in converted:
-                converted[name] = tuple(float(v) for v in converted[name])
-        try:
-            return cls(**converted)
-        except TypeError as error:  # wrong type of a value
-            raise ConfigError(str(error)) from None
+        return cls(**check_types(cls, values, "estimator"))
 
     @classmethod
     def from_toml(cls, path: str | Path, table: str = "estimator") -> EstimatorConfig:
         """Read the ``[estimator]`` table of a TOML file (other tables are ignored)."""
         return cls.from_mapping(read_toml(path).get(table, {}))
+
+
+def check_types(cls: type, values: dict[str, Any], table: str) -> dict[str, Any]:
+    """``values`` for the dataclass ``cls``, each checked against its field's type (a
+    :class:`ConfigError` names the table and the key); lists become tuples."""
+    hints = typing.get_type_hints(cls)
+    checked = dict(values)
+    for key, value in values.items():
+        expected = hints[key]
+        origin = typing.get_origin(expected)
+        if origin is tuple:
+            items = typing.get_args(expected)
+            kind = items[0]
+            fits = isinstance(value, (list, tuple)) and all(_fits(v, kind) for v in value)
+            if fits and items[-1] is not Ellipsis:
+                fits = len(value) == len(items)
+            count = "" if items[-1] is Ellipsis else f"{len(items)} "
+            wanted = f"a list of {count}{_TYPE_NAMES[kind]}s"
+            if fits:
+                checked[key] = tuple(kind(v) for v in value)
+        else:
+            kind = str if origin is Literal else expected
+            fits = _fits(value, kind)
+            wanted = _TYPE_NAMES[kind]
+            if fits and kind is float:
+                checked[key] = float(value)
+        if not fits:
+            raise ConfigError(f"[{table}] {key} = {value!r}: expected {wanted}")
+    return checked
+
+
+_TYPE_NAMES = {float: "number", int: "whole number", bool: "true or false", str: "string"}
+
+
+def _fits(value: Any, kind: type) -> bool:
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, kind)
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:

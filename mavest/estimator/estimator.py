@@ -21,9 +21,14 @@ from mavest import so3
 from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
 from mavest.estimator.config import EstimatorConfig
-from mavest.estimator.layout import N_ERROR, make_coefficients, new_state
+from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.linalg import copy_into, copy_matrix_into
 from mavest.estimator.recursion import step, turn_heading
+
+
+class InputError(ValueError):
+    """Input that cannot be what it should (e.g. an accelerometer in g rather than
+    m/s²), with what to do in the message."""
 
 
 @inplace_kernel
@@ -170,7 +175,11 @@ class Estimator:
 
     The first usable sample sets tilt from the accelerometer (heading 0 until
     a heading reference exists); every later sample is a predict–update–reset
-    step. Samples may arrive at any rate and with gaps.
+    step. Samples may arrive at any rate and with gaps. A single timestamp far
+    off the timeline is skipped (``StepFlags.TIME_OFF_TIMELINE``); time that
+    jumps and stays there is a gap, or, back, a restart (``TIME_RESTARTED``:
+    ``EstimatorConfig.max_jump``, ``timeline_confirm``). An accelerometer in g,
+    mg or mm/s² is flagged (``ACCEL_WRONG_UNIT``) and warned of, once.
     """
 
     def __init__(self, config: EstimatorConfig | None = None, *, batch_fed: bool = False) -> None:
@@ -379,6 +388,8 @@ class Estimator:
             None if mag is None else (online.vector3(mag, "mag"),),
             None if linear_accel is None else (online.vector3(linear_accel, "linear_accel"),),
         )
+        if series.flags[0] & StepFlags.ACCEL_WRONG_UNIT:
+            online.warn_accel_unit(self._state, stacklevel=3)
         return series[0]
 
     def update_batch(
@@ -393,7 +404,9 @@ class Estimator:
 
         ``mag`` (N, 3) µT, NaN rows where a sample has no magnetometer reading;
         None: 6-D throughout. ``linear_accel`` (N, 3) m/s² NED, NaN rows where
-        the vehicle's acceleration is not known (see :meth:`update`).
+        the vehicle's acceleration is not known (see :meth:`update`). An
+        accelerometer in another unit is flagged (``StepFlags.ACCEL_WRONG_UNIT``),
+        neither warned of nor raised (:meth:`update` warns, :func:`estimate` raises).
         """
         t = np.ascontiguousarray(t, dtype=np.float64)
         if t.ndim != 1:
@@ -454,5 +467,14 @@ def estimate(
     config: EstimatorConfig | None = None,
     linear_accel: ArrayLike | None = None,
 ) -> EstimateSeries:
-    """Estimate attitude and gyro bias for a whole recording (see :class:`Estimator`)."""
-    return Estimator(config).update_batch(t, gyro, accel, mag, linear_accel)
+    """Estimate attitude and gyro bias for a whole recording (see :class:`Estimator`).
+
+    Raises :class:`InputError` when the accelerometer is in another unit than m/s²
+    (its norm over the first samples is g in g, mg or mm/s²): nothing would be
+    estimated, every sample NOT_INITIALISED.
+    """
+    estimator = Estimator(config)
+    series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
+    if np.any(series.flags & StepFlags.ACCEL_WRONG_UNIT):
+        raise InputError(online.accel_unit_message(estimator._state))
+    return series

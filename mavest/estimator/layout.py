@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mavest import timeline
 from mavest.estimator.config import (
     CHARTS,
     ERROR_SIDES,
@@ -74,7 +75,9 @@ class StepFlags:
     ACCEL_REJECTED_NORM = 8  # |‖a‖ − g| beyond tolerance: not gravity
     ACCEL_DISTURBED = 16  # innovation beyond the χ² gate: used with its noise inflated to match
     GYRO_INVALID = 32  # gyroscope not finite: sample skipped
-    TIME_NOT_INCREASING = 64  # t ≤ previous t (duplicate or time going back): skipped
+    # t not after the previous sample's (a duplicate, a step back within
+    # mavest.timeline.REORDER_WINDOW) or NaN: skipped
+    TIME_NOT_INCREASING = 64
     GAP_REALIGNED = 128  # Δt > max_dt: attitude re-aligned from the accelerometer
     TILT_REOPENED = 256  # disturbed too long: tilt given its initial uncertainty again
     LOWPASS_RESTARTED = 512  # a large correction: the accelerometer low-pass starts again
@@ -109,8 +112,18 @@ class StepFlags:
     # correct is not known (re-aligned after a gap, or waiting for calm after a
     # clipped gyro)
     MAG_SET_ASIDE = 16777216
+    # t far off the timeline (back by more than mavest.timeline.REORDER_WINDOW, forward
+    # by more than EstimatorConfig.max_jump, or infinite), and not (yet) continued by
+    # the samples after it: a corrupted timestamp, skipped
+    TIME_OFF_TIMELINE = 33554432
+    # time went back and stayed back (EstimatorConfig.timeline_confirm samples in a
+    # row): the clock restarted, the estimate re-initialised from this sample
+    TIME_RESTARTED = 67108864
+    # not initialised, and the accelerometer's norm over the first samples is g in
+    # another unit than m/s² (g, mg, mm/s²: recursion.ACCEL_UNITS)
+    ACCEL_WRONG_UNIT = 134217728
 
-    SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING
+    SKIPPED = GYRO_INVALID | TIME_NOT_INCREASING | TIME_OFF_TIMELINE
 
     @classmethod
     def describe(cls, flags: int) -> list[str]:
@@ -149,6 +162,10 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("initial_bias_var", np.float64),
         ("initial_bias", np.float64, 3),
         ("max_dt", np.float64),
+        ("max_jump", np.float64),  # s forward beyond which a step needs confirming
+        ("reorder_window", np.float64),  # s back that is a late sample, not a new timeline
+        ("timeline_confirm", np.int64),  # samples in a row that confirm a new timeline
+        ("timeline_max_step", np.float64),  # s between a new timeline's samples, at most
         ("gyro_clip", np.float64),
         ("accel_lowpass_time", np.float64),
         ("accel_lowpass_damping", np.float64),
@@ -202,6 +219,19 @@ STATE_DTYPE = np.dtype(
         ("clip_calm_time", np.float64),
         ("unhealthy_resets", np.int64),  # re-initialisations after a failed health check
         ("divergence_resets", np.int64),  # re-initialisations after a divergence
+        # samples in a row far off the timeline (0: none), and the last one's time
+        ("timeline_count", np.int64),
+        ("t_timeline", np.float64),
+        # the accelerometer's unit, judged over the first samples while none aligns:
+        # 0 not judged yet, −1 m/s² (or no verdict), k ≥ 1 ACCEL_UNITS[k − 1]; the
+        # samples judged so far (since unit_t0), how many of them are g in each of
+        # ACCEL_UNITS, and the sum of those norms
+        ("accel_unit", np.int64),
+        ("unit_t0", np.float64),
+        ("unit_samples", np.int64),
+        ("unit_votes", np.int64, 3),
+        ("unit_norm_sum", np.float64, 3),
+        ("unit_warned", np.int64),  # the caller has been told (once)
         # filters feeding the measurements
         # low-passed specific force f̄ and its rate ḟ, estimated world frame
         ("accel_world_lp", np.float64, (2, 3)),
@@ -338,6 +368,10 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["initial_bias_var"] = config.initial_bias_sigma**2
     c["initial_bias"] = config.initial_bias
     c["max_dt"] = config.max_dt
+    c["max_jump"] = config.max_jump
+    c["reorder_window"] = timeline.REORDER_WINDOW
+    c["timeline_confirm"] = config.timeline_confirm
+    c["timeline_max_step"] = timeline.MAX_STEP
     c["gyro_clip"] = config.gyro_clip
     c["accel_lowpass_time"] = config.accel_lowpass_time
     c["accel_lowpass_damping"] = config.accel_lowpass_damping
@@ -404,4 +438,6 @@ def new_state(coefficients: np.ndarray) -> np.ndarray:
     s["innovation"] = np.nan
     s["t_reopened"] = -np.inf
     s["clip_calm_time"] = -1.0
+    s["t_timeline"] = np.nan
+    s["unit_t0"] = np.nan
     return s

@@ -58,13 +58,38 @@ from mavest.estimator.layout import (
     StepFlags,
 )
 from mavest.estimator.linalg import copy_into
-from mavest.estimator.recursion import step
+from mavest.estimator.recursion import ACCEL_UNITS, step
 
 # Rows per output block: a block is shared by the estimates made from it and freed with
 # the last of them, so it is small (21 KiB) for callers that keep a few estimates.
 BLOCK_ROWS = 48
 
 UNKNOWN3 = (math.nan, math.nan, math.nan)  # no magnetometer, no known acceleration
+
+ACCEL_WRONG_UNIT = StepFlags.ACCEL_WRONG_UNIT
+
+
+def accel_unit_message(state: np.ndarray) -> str:
+    """What the step found of a state's accelerometer unit (StepFlags.ACCEL_WRONG_UNIT),
+    in one line."""
+    s = state[0]
+    k = int(s["accel_unit"]) - 1
+    name, scale = ACCEL_UNITS[k]
+    norm = float(s["unit_norm_sum"][k] / s["unit_votes"][k])
+    return (
+        f"accelerometer norm ≈ {norm:.4g}: looks like {name}, mavest wants m/s²"
+        f" (multiply by {scale:.6g})"
+    )
+
+
+def warn_accel_unit(state: np.ndarray, stacklevel: int) -> None:
+    """Warn that the accelerometer is in another unit, once for a state record (the
+    caller saw ACCEL_WRONG_UNIT). ``stacklevel`` as :func:`warnings.warn`'s, counted
+    from the caller: the frame that called :meth:`Estimator.update`."""
+    if state["unit_warned"][0]:
+        return
+    state["unit_warned"] = 1
+    warnings.warn(accel_unit_message(state), UserWarning, stacklevel=stacklevel + 1)
 
 
 def vector3(value: ArrayLike, name: str) -> np.ndarray:
@@ -469,6 +494,8 @@ class PythonOnline:
         self._next_row = row + 1
         block = self._block
         self._step(self._state, self._coefficients, block, row, t, *g, *f, *m, *a)
+        if int(block[row, ROW_FLAGS]) & ACCEL_WRONG_UNIT:
+            warn_accel_unit(self._state, stacklevel=2)
         return Estimate(block[row])
 
 

@@ -5,7 +5,7 @@ State X = [R, b] ∈ SO(3) × R³ held as a nominal (q, b) and a Gaussian error
 every step the error mean is moved into the nominal (the reset), so it is zero
 between samples and only the covariance travels with the nominal.
 
-Prediction (DESIGN.md), ω̂ = ω_m − b̄, φ = ω̂ Δt with each sample's own Δt:
+Prediction (docs/design.md#prediction), ω̂ = ω_m − b̄, φ = ω̂ Δt, each sample's own Δt:
 
     R̄ ← R̄ Exp(φ)                                       (exact for constant rate)
     Φ = [[I, −R̄ J_l(φ) Δt], [0, I]]                     (left error)
@@ -14,7 +14,7 @@ Prediction (DESIGN.md), ω̂ = ω_m − b̄, φ = ω̂ Δt with each sample's ow
 
 with M = R̄ (left) or Exp(−φ) (right, its adjoint image).
 
-Update (seed 002): the MAP cost ‖r(x)‖²_V + ‖x ⊟ x̄‖²_P minimised by
+Update (docs/design.md#iterated-update): the MAP cost ‖r(x)‖²_V + ‖x ⊟ x̄‖²_P minimised by
 Gauss–Newton with the prior-correction term (Bell & Cathey 1993; on the
 manifold as IKFoM). With d_i = x_i ⊟ x̄ and T_i the reset Jacobian at d_i, the
 prior seen from the iterate is N(−T_i d_i, T_i P T_iᵀ), and
@@ -74,6 +74,7 @@ from mavest import so3, sphere
 from mavest._jit import inplace_inlined_kernel, inplace_kernel
 from mavest.estimator import gravity, magnetic
 from mavest.estimator.charts import local_into, reset_jacobian_into, retract_into
+from mavest.estimator.config import STANDARD_GRAVITY
 from mavest.estimator.layout import (
     ERROR_LEFT,
     N_AXES,
@@ -98,6 +99,7 @@ from mavest.estimator.linalg import (
     right_multiply_cols3,
     symmetrise,
 )
+from mavest.timeline import confirmations_kernel, far_off_kernel
 
 # Accelerometer readings below this fraction of g carry no usable direction.
 _MIN_ACCEL_FRACTION = 0.05
@@ -137,6 +139,29 @@ _DIVERGED = StepFlags.DIVERGED
 _BETWEEN_UPDATES = StepFlags.BETWEEN_UPDATES
 _MAG_BETWEEN_UPDATES = StepFlags.MAG_BETWEEN_UPDATES
 _MAG_SET_ASIDE = StepFlags.MAG_SET_ASIDE
+_TIME_OFF_TIMELINE = StepFlags.TIME_OFF_TIMELINE
+_TIME_RESTARTED = StepFlags.TIME_RESTARTED
+_ACCEL_WRONG_UNIT = StepFlags.ACCEL_WRONG_UNIT
+
+# The units other than m/s² that an accelerometer's readings come in, as (name, m/s²
+# per unit): the g itself (norm ≈ 1), mg (≈ 1000, MAVLink's raw messages) and mm/s²
+# (≈ 9807). Told by the norm of the first samples (StepFlags.ACCEL_WRONG_UNIT): the
+# filter never aligns on them and would otherwise say nothing but NOT_INITIALISED.
+ACCEL_UNITS = (
+    ("g", STANDARD_GRAVITY),
+    ("mg", STANDARD_GRAVITY / 1000.0),
+    ("mm/s²", 0.001),
+)
+_UNIT_SCALES = (ACCEL_UNITS[0][1], ACCEL_UNITS[1][1], ACCEL_UNITS[2][1])
+# A norm within this fraction of g in a unit is g in that unit (units 10³ apart; at rest
+# an accelerometer's norm is within a few % of g, and in m/s² a norm of 1 ± 0.15 is a
+# fall, not the hover or rest a stream starts in).
+_UNIT_TOLERANCE = 0.15
+# The verdict is on the first samples that do not align, over at least this long and
+# this many: the unit is theirs when more than half of them are g in it, that is,
+# when their median norm is.
+_UNIT_WINDOW = 0.5  # s
+_UNIT_MIN_SAMPLES = 5
 
 
 # --------------------------------------------------------------------------
@@ -444,8 +469,8 @@ def _reset_velocity_covariance(s: StateRecord, c: CoefficientsRecord) -> None:
 def _process_noise_rotation(s: StateRecord, c: CoefficientsRecord, phi: np.ndarray) -> None:
     """The rotation M in Q's cross term: R̄ before the step for the left error, which
     w_R must hold already; for the right error Exp(−φ), into w_n33, its image under
-    the adjoint, so that left and right filters stay the same filter (DESIGN.md:
-    with the full reset they give the same estimate)."""
+    the adjoint, so that left and right filters stay the same filter (with the full
+    reset they give the same estimate: docs/design.md#recursion-and-reset)."""
     if c.error != ERROR_LEFT:
         so3.exp_into(phi, s.w_m33)
         for i in range(3):
@@ -2059,6 +2084,88 @@ def _set_aside_mag(s: StateRecord, mag: np.ndarray) -> None:
 
 
 @inplace_kernel
+def _initialise(
+    s: StateRecord,
+    c: CoefficientsRecord,
+    t: float,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    mag: np.ndarray,
+) -> None:
+    """Not initialised: set the attitude from this sample's accelerometer if it can,
+    else say why not."""
+    if math.isfinite(t) and _vector_is_finite(gyro) and _accel_usable_for_alignment(c, accel):
+        _align(s, c, accel, False, False)
+        s.initialised = 1
+        s.t = t
+        s.t_accel = t
+        s.samples += 1
+        s.flags = _INITIALISED
+        s.accel_used = 1
+        mag_update(s, c, t, mag, 0.0)
+    else:
+        s.flags = _NOT_INITIALISED
+        if s.samples == 0 and _judge_accel_unit(s, c, t, accel):
+            s.flags |= _ACCEL_WRONG_UNIT
+
+
+@inplace_kernel
+def _judge_accel_unit(s: StateRecord, c: CoefficientsRecord, t: float, accel: np.ndarray) -> bool:
+    """Take a sample that did not align, before any did, into the verdict on the
+    accelerometer's unit (ACCEL_UNITS); whether it is in one of those."""
+    if s.accel_unit != 0:
+        return s.accel_unit > 0
+    norm = math.sqrt(accel[0] ** 2 + accel[1] ** 2 + accel[2] ** 2)
+    if not (math.isfinite(t) and math.isfinite(norm) and norm > 0.0):
+        return False
+    if s.unit_samples == 0:
+        s.unit_t0 = t
+    s.unit_samples += 1
+    for k in range(len(_UNIT_SCALES)):
+        if abs(norm * _UNIT_SCALES[k] - c.gravity) <= _UNIT_TOLERANCE * c.gravity:
+            s.unit_votes[k] += 1
+            s.unit_norm_sum[k] += norm
+    if s.unit_samples < _UNIT_MIN_SAMPLES or not t - s.unit_t0 >= _UNIT_WINDOW:
+        return False
+    s.accel_unit = -1
+    for k in range(len(_UNIT_SCALES)):
+        if 2 * s.unit_votes[k] > s.unit_samples:
+            s.accel_unit = k + 1
+    return s.accel_unit > 0
+
+
+@inplace_kernel
+def _new_timeline_confirmed(s: StateRecord, c: CoefficientsRecord, t: float) -> bool:
+    """Count a sample far off the timeline towards a new one (mavest.timeline); True
+    once it is confirmed. An infinite time never is, however few confirm."""
+    if not math.isfinite(t):
+        return False
+    s.timeline_count = confirmations_kernel(s.timeline_count, t - s.t_timeline, c.timeline_max_step)
+    s.t_timeline = t
+    if s.timeline_count < c.timeline_confirm:
+        return False
+    s.timeline_count = 0
+    return True
+
+
+@inplace_kernel
+def _restart_timeline(s: StateRecord, c: CoefficientsRecord) -> None:
+    """Time went back and stayed back: forget what happened at times on the old
+    timeline, as a fresh estimator would not know it; the next alignment starts
+    again (bias from its prior, heading from the next magnetometer sample)."""
+    _flush_pending(s, c)
+    s.initialised = 0
+    s.t = -math.inf
+    s.t_accel = -math.inf
+    s.t_update = -math.inf
+    s.t_mag = -math.inf
+    s.t_mag_used = -math.inf
+    s.t_reopened = -math.inf
+    s.clip_calm_time = -1.0
+    s.mag_state = 0
+
+
+@inplace_kernel
 def _step_sample(
     s: StateRecord,
     c: CoefficientsRecord,
@@ -2075,24 +2182,27 @@ def _step_sample(
     if not s.initialised:
         _clear_gravity_report(s)
         _clear_heading_report(s)
-        if math.isfinite(t) and _vector_is_finite(gyro) and _accel_usable_for_alignment(c, accel):
-            _align(s, c, accel, False, False)
-            s.initialised = 1
-            s.t = t
-            s.t_accel = t
-            s.samples += 1
-            s.flags = _INITIALISED
-            s.accel_used = 1
-            mag_update(s, c, t, mag, 0.0)
-        else:
-            s.flags = _NOT_INITIALISED
+        _initialise(s, c, t, gyro, accel, mag)
         return
     dt = t - s.t
+    if _vector_is_finite(gyro) and far_off_kernel(dt, c.reorder_window, c.max_jump):
+        if not _new_timeline_confirmed(s, c, t):
+            s.flags = _TIME_OFF_TIMELINE
+            _clear_gravity_report(s)
+            _clear_heading_report(s)
+            return
+        if not dt > 0.0:  # time went back and stayed: the clock restarted
+            _restart_timeline(s, c)
+            _initialise(s, c, t, gyro, accel, mag)
+            s.flags |= _TIME_RESTARTED
+            return
+        # forward, and it stayed: a gap (below)
     if not dt > 0.0 or not _vector_is_finite(gyro):  # (also NaN)
         s.flags = _TIME_NOT_INCREASING if not dt > 0.0 else _GYRO_INVALID
         _clear_gravity_report(s)
         _clear_heading_report(s)
         return
+    s.timeline_count = 0  # on the timeline: a far-off sample before was a corrupted one
     s.samples += 1
     if dt > c.max_dt:
         _clear_gravity_report(s)

@@ -12,9 +12,10 @@ same work is done on whole runs of records in compiled loops:
   record array laid out as the message's wire format (MAVLink 2's trailing
   zeros restored, as pymavlink does), from which IMU samples and reference
   attitudes are read in bulk (:func:`imu_fields`, :func:`simstate_euler`).
-* :func:`attitude_packets` packs ATTITUDE and ATTITUDE_QUATERNION as pymavlink
-  would (same bytes: MAVLink 2, trailing zeros cut, CRC with the message's
-  extra byte, the encoder's sequence numbers), and :func:`interleave` lays the
+* :func:`attitude_packets` packs ATTITUDE and ATTITUDE_QUATERNION as the
+  encoder would (same bytes: MAVLink 2 with trailing zeros cut, or MAVLink 1
+  for samples that came so; CRC with the message's extra byte, the encoder's
+  sequence numbers), and :func:`interleave` lays the
   input records and the answers out as the output tlog's records.
 
 ``tests/test_bulk.py`` checks each against pymavlink on the same bytes.
@@ -28,6 +29,7 @@ import numpy as np
 
 from mavest import so3
 from mavest._jit import inplace_exact_kernel
+from mavest.mavlink import wire
 from mavest.mavlink.messages import (
     _HIGHRES_INERTIAL_BITS,
     _HIGHRES_MAG_BITS,
@@ -328,6 +330,8 @@ def _pack(
     payloads: np.ndarray,
     message_id: int,
     crc_extra: int,
+    mavlink1: np.ndarray,
+    mavlink1_length: int,
     system: int,
     component: int,
     first_seq: int,
@@ -335,28 +339,42 @@ def _pack(
     out: np.ndarray,
     out_length: np.ndarray,
 ) -> None:
-    """MAVLink 2 packets of these payloads, as pymavlink packs (trailing zeros cut)."""
+    """Packets of these payloads, as :func:`mavest.mavlink.wire.pack` packs them: MAVLink 2
+    (trailing zeros cut), or MAVLink 1 where ``mavlink1`` is set (the first
+    ``mavlink1_length`` bytes: the base fields)."""
     for i in range(payloads.shape[0]):
-        length = payloads.shape[1]
-        while length > 1 and payloads[i, length - 1] == 0:
-            length -= 1
         row = out[i]
-        row[0] = 0xFD
-        row[1] = length
-        row[2] = 0
-        row[3] = 0
-        row[4] = (first_seq + i * seq_step) & 0xFF
-        row[5] = system
-        row[6] = component
-        row[7] = message_id & 0xFF
-        row[8] = (message_id >> 8) & 0xFF
-        row[9] = (message_id >> 16) & 0xFF
+        seq = (first_seq + i * seq_step) & 0xFF
+        if mavlink1[i]:
+            length = mavlink1_length
+            header = 6
+            row[0] = 0xFE
+            row[1] = length
+            row[2] = seq
+            row[3] = system
+            row[4] = component
+            row[5] = message_id
+        else:
+            length = payloads.shape[1]
+            while length > 1 and payloads[i, length - 1] == 0:
+                length -= 1
+            header = 10
+            row[0] = 0xFD
+            row[1] = length
+            row[2] = 0
+            row[3] = 0
+            row[4] = seq
+            row[5] = system
+            row[6] = component
+            row[7] = message_id & 0xFF
+            row[8] = (message_id >> 8) & 0xFF
+            row[9] = (message_id >> 16) & 0xFF
         for k in range(length):
-            row[10 + k] = payloads[i, k]
-        crc = _x25_update(_x25_run(row, 1, 10 + length, 0xFFFF), crc_extra)
-        row[10 + length] = crc & 0xFF
-        row[11 + length] = crc >> 8
-        out_length[i] = 12 + length
+            row[header + k] = payloads[i, k]
+        crc = _x25_update(_x25_run(row, 1, header + length, 0xFFFF), crc_extra)
+        row[header + length] = crc & 0xFF
+        row[header + length + 1] = crc >> 8
+        out_length[i] = header + length + 2
 
 
 @inplace_exact_kernel
@@ -387,13 +405,17 @@ def attitude_packets(
     system: int,
     component: int,
     first_seq: int,
+    mavlink1: np.ndarray | None = None,
 ) -> tuple[Packets, Packets | None]:
     """ATTITUDE (and ATTITUDE_QUATERNION if ``q`` is given) for each row.
 
     Sequence numbers go on from ``first_seq`` as the encoder hands them out:
-    ATTITUDE then ATTITUDE_QUATERNION per sample, or ATTITUDE alone.
+    ATTITUDE then ATTITUDE_QUATERNION per sample, or ATTITUDE alone. MAVLink 2
+    packets, or MAVLink 1 for the rows where ``mavlink1`` is set.
     """
     n = time_boot_ms.shape[0]
+    if mavlink1 is None:
+        mavlink1 = np.zeros(n, dtype=np.bool_)
     step = 2 if q is not None else 1
     attitude = np.zeros(n, dtype=ATTITUDE_DTYPE)
     attitude["time_boot_ms"] = time_boot_ms
@@ -401,7 +423,7 @@ def attitude_packets(
         attitude[name] = euler[:, k]
     for k, name in enumerate(("rollspeed", "pitchspeed", "yawspeed")):
         attitude[name] = rates[:, k]
-    first = _packed(attitude, _ATTITUDE, system, component, first_seq, step)
+    first = _packed(attitude, _ATTITUDE, mavlink1, system, component, first_seq, step)
     if q is None:
         return first, None
     quaternion = np.zeros(n, dtype=ATTITUDE_QUATERNION_DTYPE)
@@ -410,18 +432,38 @@ def attitude_packets(
         quaternion[name] = q[:, k]
     for k, name in enumerate(("rollspeed", "pitchspeed", "yawspeed")):
         quaternion[name] = rates[:, k]
-    second = _packed(quaternion, _ATTITUDE_QUATERNION, system, component, first_seq + 1, step)
+    second = _packed(
+        quaternion, _ATTITUDE_QUATERNION, mavlink1, system, component, first_seq + 1, step
+    )
     return first, second
 
 
 def _packed(
-    payloads: np.ndarray, message_class: Any, system: int, component: int, seq: int, step: int
+    payloads: np.ndarray,
+    message_class: Any,
+    mavlink1: np.ndarray,
+    system: int,
+    component: int,
+    seq: int,
+    step: int,
 ) -> Packets:
     raw = payloads.view(np.uint8).reshape(payloads.shape[0], payloads.dtype.itemsize)
     n, width = raw.shape
     out = np.empty((n, width + 12), dtype=np.uint8)
     length = np.empty(n, dtype=np.int64)
-    _pack(raw, message_class.id, message_class.crc_extra, system, component, seq, step, out, length)
+    _pack(
+        raw,
+        message_class.id,
+        message_class.crc_extra,
+        np.ascontiguousarray(mavlink1, dtype=np.bool_),
+        wire.MAVLINK1_LENGTHS[message_class.id],
+        system,
+        component,
+        seq,
+        step,
+        out,
+        length,
+    )
     return Packets(out, length)
 
 

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from mavest import timeline
 from mavest._jit import inplace_exact_kernel
 
 WRAP_TICKS = 1 << 32
@@ -48,22 +49,24 @@ class StreamClock:
 
     A timestamp far off the timeline (back by more than the reorder window, or
     forward by more than ``max_jump``) is believed only when the next
-    ``confirm - 1`` samples continue from it: a reboot or a real jump does that,
-    a single corrupted timestamp does not, and is dropped instead of restarting
-    the estimate.
+    ``confirm - 1`` samples continue from it (:mod:`mavest.timeline`, the rule the
+    estimator applies too): a reboot or a real jump does that, a single corrupted
+    timestamp does not, and is dropped instead of restarting the estimate.
     """
 
     def __init__(
         self,
-        reorder_window: float = 0.5,
-        max_wrap_step: float = 10.0,
+        reorder_window: float = timeline.REORDER_WINDOW,
+        max_wrap_step: float = timeline.MAX_STEP,
         gap_periods: float = 5.0,
         min_gap: float = 0.05,
-        max_jump: float = 60.0,
-        confirm: int = 3,
+        max_jump: float = timeline.MAX_JUMP,
+        confirm: int = timeline.CONFIRM,
     ) -> None:
         self.reorder_window = reorder_window  # s back that is a late packet, not a reboot
-        self.max_wrap_step = max_wrap_step  # s: a wrap must land within this of the last sample
+        # s: a wrap must land within this of the last sample, and a new timeline's
+        # samples each within this of the one before
+        self.max_wrap_step = max_wrap_step
         self.gap_periods = gap_periods
         self.min_gap = min_gap
         self.max_jump = max_jump  # s forward beyond which a step needs confirming
@@ -91,10 +94,8 @@ class StreamClock:
     def _off_timeline(self, ticks: int, tick: float) -> bool:
         """Count a sample towards a new timeline; True once it is confirmed."""
         candidate = self._candidate
-        if candidate is not None and 0 < (ticks - candidate) * tick <= self.max_wrap_step:
-            self._candidate_count += 1
-        else:
-            self._candidate_count = 1
+        step = 0.0 if candidate is None else (ticks - candidate) * tick
+        self._candidate_count = timeline.confirmations(self.pending, step, self.max_wrap_step)
         self._candidate = ticks
         return self._candidate_count >= self.confirm
 
@@ -113,7 +114,7 @@ class StreamClock:
                 self._offset += WRAP_TICKS
                 delta = wrapped
                 event = ClockEvent.WRAPPED
-            elif -delta * tick <= self.reorder_window:
+            elif not timeline.far_off(delta * tick, self.reorder_window, self.max_jump):
                 return ClockReading(ClockEvent.OUT_OF_ORDER, (ticks + self._offset) * tick, 0.0)
             elif not self._off_timeline(ticks, tick):
                 return ClockReading(ClockEvent.OFF_TIMELINE, ticks * tick, 0.0)
@@ -123,7 +124,9 @@ class StreamClock:
                 self._period = 0.0
                 self._candidate = None
                 return ClockReading(ClockEvent.REBOOT, ticks * tick, 0.0)
-        elif delta * tick > self.max_jump and not self._off_timeline(ticks, tick):
+        elif timeline.far_off(
+            delta * tick, self.reorder_window, self.max_jump
+        ) and not self._off_timeline(ticks, tick):
             return ClockReading(ClockEvent.OFF_TIMELINE, (ticks + self._offset) * tick, 0.0)
         self._candidate = None
         self._last_ticks = ticks

@@ -1,10 +1,14 @@
 """MAVLink links on asyncio: UDP in/out, TCP client/server, serial.
 
 Connection strings are the ones pymavlink and MAVProxy users know:
-``udpin:HOST:PORT`` (listen; replies go to whoever sent), ``udpout:HOST:PORT``
-(send there; replies come back), ``tcp:HOST:PORT`` (connect, reconnecting with
-back-off when the peer goes away), ``tcpin:HOST:PORT`` (listen for clients),
-and a serial device (``/dev/ttyUSB0``, ``serial:/dev/ttyACM0:921600``).
+``udpin:HOST:PORT`` (listen; replies go to whoever sent; ``udp:`` and a bare
+``HOST:PORT`` mean the same, as in MAVProxy), ``udpout:HOST:PORT`` (send there;
+replies come back), ``udpbcast:ADDRESS:PORT`` (send to a broadcast address until
+a peer answers, then to that peer), ``tcp:HOST:PORT`` (connect, reconnecting with
+back-off when the peer goes away), ``tcpin:HOST:PORT`` (listen for clients), and a
+serial device (``/dev/ttyUSB0``, ``/dev/ttyUSB0,57600`` as MAVProxy writes it,
+``serial:/dev/ttyACM0:921600``). MAVProxy's other forms (``mcast:``, ``ws:``,
+``wsserver:``) are not taken.
 
 Every link hands received bytes, with the peer they came from, to one callback;
 the pipeline parses them (one parser per peer, so that byte streams from
@@ -38,9 +42,17 @@ class LinkError(Exception):
     """A connection that cannot be opened (bad string, port taken, no device)."""
 
 
+def _reason(endpoint: Endpoint, error: OSError) -> str:
+    """An OSError in words: a name that does not resolve says so (socket.gaierror's
+    numbers, -2 and the like, are not errno values: os.strerror calls them unknown)."""
+    if isinstance(error, socket.gaierror):
+        return f"host {endpoint.host!r} not found"
+    return os.strerror(error.errno) if error.errno else str(error)
+
+
 def _cannot_listen(endpoint: Endpoint, error: OSError) -> LinkError:
     # asyncio's server words the error its own way ("error while attempting to bind…")
-    reason = os.strerror(error.errno) if error.errno else str(error)
+    reason = _reason(endpoint, error)
     if error.errno == errno.EADDRINUSE:
         reason += f" (another program has port {endpoint.port}: a ground station, another mavest?)"
     return LinkError(f"cannot listen on {endpoint}: {reason}")
@@ -50,7 +62,7 @@ def _cannot_listen(endpoint: Endpoint, error: OSError) -> LinkError:
 class Endpoint:
     """A parsed connection string."""
 
-    kind: str  # "udpin" | "udpout" | "tcp" | "tcpin" | "serial"
+    kind: str  # "udpin" | "udpout" | "udpbcast" | "tcp" | "tcpin" | "serial"
     host: str = ""
     port: int = 0
     device: str = ""
@@ -66,6 +78,7 @@ _NETWORK_KINDS = {
     "udpin": "udpin",
     "udp": "udpin",
     "udpout": "udpout",
+    "udpbcast": "udpbcast",
     "tcp": "tcp",
     "tcpin": "tcpin",
 }
@@ -76,16 +89,24 @@ def parse_endpoint(text: str, baud: int = 115200) -> Endpoint:
     text = text.strip()
     if text.startswith("/") or text.upper().startswith("COM") or text.startswith("serial:"):
         device = text.removeprefix("serial:")
-        if ":" in device and device.rsplit(":", 1)[1].isdigit():
-            device, baud_text = device.rsplit(":", 1)
-            baud = int(baud_text)
+        for separator in (",", ":"):  # MAVProxy's DEVICE,BAUD and pymavlink's DEVICE:BAUD
+            head, _, tail = device.rpartition(separator)
+            if head and tail.isdigit():
+                device, baud = head, int(tail)
+                break
+        if baud <= 0:
+            raise LinkError(f"serial baud rate {baud} must be positive")
         return Endpoint("serial", device=device, baud=baud)
     kind, _, rest = text.partition(":")
     if kind not in _NETWORK_KINDS:
-        raise LinkError(
-            f"unknown connection {text!r}: use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
-            "tcpin:HOST:PORT or a serial device such as /dev/ttyUSB0"
-        )
+        if rest.isdigit() and kind:  # MAVProxy's bare HOST:PORT listens there (udpin)
+            kind, rest = "udpin", text
+        else:
+            raise LinkError(
+                f"unknown connection {text!r}: use udpin:HOST:PORT (or udp:), udpout:HOST:PORT, "
+                "udpbcast:ADDRESS:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or a serial device such as "
+                "/dev/ttyUSB0 or /dev/ttyUSB0,57600"
+            )
     host, _, port_text = rest.rpartition(":")
     if not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
         raise LinkError(f"connection {text!r} needs HOST:PORT with a port in 1–65535")
@@ -130,7 +151,8 @@ class _DatagramProtocol(asyncio.DatagramProtocol):
 
 class UdpLink(Link):
     """``udpin`` listens and replies to every peer heard from recently;
-    ``udpout`` sends to one address and listens for its replies."""
+    ``udpout`` sends to one address and listens for its replies; ``udpbcast`` sends to a
+    broadcast address until a peer answers, then to that peer only (as pymavlink)."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         super().__init__(endpoint)
@@ -138,6 +160,9 @@ class UdpLink(Link):
         self._peers: dict[Any, float] = {}  # udpin: who to reply to → when last heard
         self._silent: dict[Any, float] = {}  # peers dropped for silence → when last heard
         self._warned_unreachable = False
+        # udpbcast: where packets go (the broadcast address, then the peer that answered)
+        self._destination: Any = (endpoint.host, endpoint.port)
+        self._answered = False
 
     async def start(self, receiver: Receiver) -> None:
         await super().start(receiver)
@@ -148,6 +173,10 @@ class UdpLink(Link):
                 transport, _ = await loop.create_datagram_endpoint(
                     lambda: _DatagramProtocol(self), local_addr=address
                 )
+            elif self.endpoint.kind == "udpbcast":
+                transport, _ = await loop.create_datagram_endpoint(
+                    lambda: _DatagramProtocol(self), local_addr=("0.0.0.0", 0), allow_broadcast=True
+                )
             else:
                 transport, _ = await loop.create_datagram_endpoint(
                     lambda: _DatagramProtocol(self), remote_addr=address
@@ -155,7 +184,9 @@ class UdpLink(Link):
         except OSError as error:
             if self.endpoint.kind == "udpin":
                 raise _cannot_listen(self.endpoint, error) from None
-            raise LinkError(f"cannot open {self.endpoint}: {error.strerror or error}") from None
+            raise LinkError(
+                f"cannot open {self.endpoint}: {_reason(self.endpoint, error)}"
+            ) from None
         self._transport = transport  # type: ignore[assignment]
         sock = transport.get_extra_info("socket")
         if sock is not None:  # a burst of IMU packets must not overflow the kernel's buffer
@@ -168,6 +199,10 @@ class UdpLink(Link):
             if addr not in self._peers:
                 self._on_new_peer(addr, now)
             self._peers[addr] = now
+        elif self.endpoint.kind == "udpbcast" and not self._answered:
+            self._answered = True
+            self._destination = addr
+            log.info("%s: answered by %s; sending to it from now on", self.endpoint, _address(addr))
         self._deliver(data, addr)
 
     def _on_new_peer(self, addr: Any, now: float) -> None:
@@ -194,6 +229,9 @@ class UdpLink(Link):
             return
         if self.endpoint.kind == "udpout":
             transport.sendto(packet)
+            return
+        if self.endpoint.kind == "udpbcast":
+            transport.sendto(packet, self._destination)
             return
         now = time.monotonic()
         for addr, seen in list(self._peers.items()):
@@ -380,7 +418,7 @@ class SerialLink(Link):
 
 
 def make_link(endpoint: Endpoint) -> Link:
-    if endpoint.kind in ("udpin", "udpout"):
+    if endpoint.kind in ("udpin", "udpout", "udpbcast"):
         return UdpLink(endpoint)
     if endpoint.kind == "tcp":
         return TcpClientLink(endpoint)

@@ -12,6 +12,7 @@ magnetic field (the unit of BROAD and of most magnetometer literature).
 from __future__ import annotations
 
 import math
+import struct
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -147,6 +148,7 @@ class ImuSample(NamedTuple):
     # a gyro / accelerometer axis at its integer field's limit: clipped, not measured
     gyro_saturated: bool = False
     accel_saturated: bool = False
+    mavlink1: bool = False  # it came as MAVLink 1 (its answers go the same way)
 
     @property
     def saturated(self) -> bool:
@@ -192,14 +194,34 @@ def decode_imu(message: Any) -> ImuSample | None:
         (message.xmag * m, message.ymag * m, message.zmag * m) if mag_fresh else None,
         gyro_saturated,
         accel_saturated,
+        is_mavlink1(message),
     )
 
 
-class Encoder:
-    """mavest's outgoing messages, as MAVLink 2 packets from its own system and component.
+def is_mavlink1(message: Any) -> bool:
+    """Whether a received message came as a MAVLink 1 packet."""
+    return message.get_msgbuf()[0] == mavlink2.PROTOCOL_MARKER_V1
 
-    With ``signing`` (and its ``sign_outgoing``), every packet is signed by pymavlink
-    with the key, mavest's fixed link id and a timestamp kept at the signing clock's now.
+
+# The FILE_TRANSFER_PROTOCOL payload's header (MAVLink FTP): seq, session, opcode, size,
+# req_opcode, burst_complete, padding, offset; then the data.
+_FTP_HEADER = struct.Struct("<HBBBBBBI")
+
+
+def ftp_opcode(payload: Any) -> int:
+    """The opcode of a FILE_TRANSFER_PROTOCOL payload (MAV_FTP_OPCODE)."""
+    return int(payload[3])  # after seq (uint16) and session
+
+
+class Encoder:
+    """mavest's outgoing messages, as packets from its own system and component.
+
+    MAVLink 2 unless ``mavlink1`` is asked for (a vehicle heard in MAVLink 1 is
+    answered in MAVLink 1, as ground stations do: a MAVLink 2 packet among its
+    MAVLink 1 ones trips MAVLink 1 readers, and pymavlink's tlog reader). With
+    ``signing`` (and its ``sign_outgoing``), every packet is MAVLink 2, signed by
+    pymavlink with the key, mavest's fixed link id and a timestamp kept at the
+    signing clock's now: MAVLink 1 cannot be signed.
     """
 
     def __init__(self, system: int, component: int, signing: Signing | None = None) -> None:
@@ -211,49 +233,88 @@ class Encoder:
             enable_outgoing(self._mav, signing.key)
             self.signed = True
 
-    def _pack(self, message: Any) -> bytes:
+    def _pack(self, message: Any, mavlink1: bool = False) -> bytes:
         """The packet of ``message``: signed at the signing clock's now (if it signs), with
         the next sequence number (pymavlink advances it only in ``send``, which a
         packet for several links does not use), so that receivers can count losses."""
         mav = self._mav
+        if mavlink1 and not self.signed:
+            # pymavlink's MAVLink 1 packet of a MAVLink 2 message keeps the extension
+            # fields; its payload, whole, is packed here without them
+            whole = message.pack(mav, force_mavlink1=True)
+            payload = whole[mavlink2.HEADER_LEN_V1 : -2]
+            return self._pack_payload(message.id, message.crc_extra, payload, True)
         if self.signed:
             advance_clock(mav.signing)
         packet = message.pack(mav)
         mav.seq = (mav.seq + 1) % 256
         return packet
 
-    def _pack_unsigned(self, message_class: type[Any], *wire_values: float) -> bytes:
-        """The packet of ``message_class`` with ``wire_values`` (in wire order), as
-        :meth:`_pack` would make it unsigned, without a message object (the hot path)."""
+    def _pack_payload(
+        self, message_id: int, crc_extra: int, payload: bytes, mavlink1: bool
+    ) -> bytes:
+        """The unsigned packet of a payload (wire order), with the next sequence number."""
         mav = self._mav
         packet = wire.pack(
-            message_class.id,
-            message_class.crc_extra,
-            message_class.unpacker.pack(*wire_values),
-            mav.seq,
-            self.system,
-            self.component,
+            message_id, crc_extra, payload, mav.seq, self.system, self.component, mavlink1
         )
         mav.seq = (mav.seq + 1) % 256
         return packet
 
-    def attitude(self, time_boot_ms: int, euler: Any, rates: tuple[float, float, float]) -> bytes:
+    def _pack_unsigned(
+        self, message_class: type[Any], *wire_values: float, mavlink1: bool = False
+    ) -> bytes:
+        """The packet of ``message_class`` with ``wire_values`` (in wire order), as
+        :meth:`_pack` would make it unsigned, without a message object (the hot path)."""
+        return self._pack_payload(
+            message_class.id,
+            message_class.crc_extra,
+            message_class.unpacker.pack(*wire_values),
+            mavlink1,
+        )
+
+    def attitude(
+        self,
+        time_boot_ms: int,
+        euler: Any,
+        rates: tuple[float, float, float],
+        mavlink1: bool = False,
+    ) -> bytes:
         roll, pitch, yaw = float(euler[0]), float(euler[1]), float(euler[2])
         if not self.signed:
-            return self._pack_unsigned(_ATTITUDE, time_boot_ms, roll, pitch, yaw, *rates)
+            return self._pack_unsigned(
+                _ATTITUDE, time_boot_ms, roll, pitch, yaw, *rates, mavlink1=mavlink1
+            )
         return self._pack(self._mav.attitude_encode(time_boot_ms, roll, pitch, yaw, *rates))
 
     def attitude_quaternion(
-        self, time_boot_ms: int, q: Any, rates: tuple[float, float, float]
+        self,
+        time_boot_ms: int,
+        q: Any,
+        rates: tuple[float, float, float],
+        mavlink1: bool = False,
     ) -> bytes:
         w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
         if not self.signed:  # repr_offset_q (an extension) zero: dropped as trailing zeros
             return self._pack_unsigned(
-                _ATTITUDE_QUATERNION, time_boot_ms, w, x, y, z, *rates, 0.0, 0.0, 0.0, 0.0
+                _ATTITUDE_QUATERNION,
+                time_boot_ms,
+                w,
+                x,
+                y,
+                z,
+                *rates,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                mavlink1=mavlink1,
             )
         return self._pack(self._mav.attitude_quaternion_encode(time_boot_ms, w, x, y, z, *rates))
 
-    def heartbeat(self) -> bytes:
+    def heartbeat(self, mavlink1: bool = False) -> bytes:
+        """A companion component's HEARTBEAT (onboard controller, no autopilot): ground
+        stations list it as a component, never as a vehicle to fly."""
         return self._pack(
             self._mav.heartbeat_encode(
                 mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
@@ -261,11 +322,17 @@ class Encoder:
                 0,
                 0,
                 mavlink2.MAV_STATE_ACTIVE,
-            )
+            ),
+            mavlink1,
         )
 
     def set_message_interval(
-        self, target_system: int, target_component: int, message: str, rate_hz: float
+        self,
+        target_system: int,
+        target_component: int,
+        message: str,
+        rate_hz: float,
+        mavlink1: bool = False,
     ) -> bytes:
         """MAV_CMD_SET_MESSAGE_INTERVAL: the only command mavest ever sends."""
         message_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{message}")
@@ -283,6 +350,56 @@ class Encoder:
                 0.0,
                 0.0,
                 0.0,
+            ),
+            mavlink1,
+        )
+
+    def command_ack(
+        self,
+        command: int,
+        result: int,
+        target_system: int,
+        target_component: int,
+        mavlink1: bool = False,
+    ) -> bytes:
+        """COMMAND_ACK of ``command`` to the component that sent it."""
+        return self._pack(
+            self._mav.command_ack_encode(command, result, 0, 0, target_system, target_component),
+            mavlink1,
+        )
+
+    def ftp_nak(
+        self,
+        request: bytes,
+        error: int,
+        target_network: int,
+        target_system: int,
+        target_component: int,
+        mavlink1: bool = False,
+    ) -> bytes:
+        """The FILE_TRANSFER_PROTOCOL NAK of a request (``request``: its payload) with
+        an error code (MAV_FTP_ERR): the next sequence number, the request's session
+        and opcode, the error as the one byte of data."""
+        seq, session, opcode, *_ = _FTP_HEADER.unpack_from(bytes(request[: _FTP_HEADER.size]))
+        header = _FTP_HEADER.pack(
+            (seq + 1) & 0xFFFF, session, mavlink2.MAV_FTP_OPCODE_NAK, 1, opcode, 0, 0, 0
+        )
+        payload = header + bytes((error,))
+        payload += bytes(251 - len(payload))
+        return self._pack(
+            self._mav.file_transfer_protocol_encode(
+                target_network, target_system, target_component, payload
+            ),
+            mavlink1,
+        )
+
+    def param_error(
+        self, param_id: str, param_index: int, error: int, target_system: int, target_component: int
+    ) -> bytes:
+        """PARAM_ERROR (MAVLink 2 only: its id does not fit MAVLink 1)."""
+        return self._pack(
+            self._mav.param_error_encode(
+                target_system, target_component, param_id.encode(), param_index, error
             )
         )
 

@@ -13,7 +13,8 @@ bytes, signing, unknown messages: its rules, its counts).
 
 :func:`pack` is the other direction for mavest's own unsigned messages:
 pymavlink's packet, byte for byte (MAVLink 2 trailing zeros removed), without
-building a message object first.
+building a message object first; or the MAVLink 1 packet, for a vehicle that
+speaks MAVLink 1 (the message's base fields only: MAVLink 1 has no extensions).
 
 Both are checked against pymavlink, message for message (tests/test_wire.py).
 """
@@ -24,6 +25,7 @@ import struct
 from typing import Any, NamedTuple
 
 from fastcrc import crc16  # pymavlink's own CRC (MCRF4XX), in C
+from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 _V2_HEADER = struct.Struct("<BBBBBBBHB")  # magic, len, incompat, compat, seq, sys, comp, id
@@ -63,6 +65,13 @@ def _layouts() -> dict[int, _Layout]:
 
 
 _LAYOUTS = _layouts()
+
+# The MAVLink 1 payload length of each message MAVLink 1 can carry: its fields without
+# the extensions, which MAVLink 1 does not have (the MAVLink 1 dialect's whole payload).
+MAVLINK1_LENGTHS: dict[int, int] = {
+    message_id: message_class.unpacker.size
+    for message_id, message_class in mavlink1.mavlink_map.items()
+}
 
 
 def decode_datagram(data: bytes) -> list[Any] | None:
@@ -126,17 +135,29 @@ def decode_datagram(data: bytes) -> list[Any] | None:
 
 
 def pack(
-    message_id: int, crc_extra: int, payload: bytes, seq: int, system: int, component: int
+    message_id: int,
+    crc_extra: int,
+    payload: bytes,
+    seq: int,
+    system: int,
+    component: int,
+    mavlink1: bool = False,
 ) -> bytes:
-    """The unsigned MAVLink 2 packet of ``payload`` (the message's wire-order bytes).
-
-    As pymavlink packs it: trailing zero bytes of the payload dropped (one kept).
+    """The unsigned packet of ``payload`` (the message's wire-order bytes, extensions
+    included): MAVLink 2 as pymavlink packs it, trailing zero bytes of the payload
+    dropped (one kept); with ``mavlink1``, MAVLink 1 as a MAVLink 1 sender packs it,
+    the base fields whole and the extensions left out.
     """
-    length = len(payload)
-    while length > 1 and payload[length - 1] == 0:
-        length -= 1
-    packet = (
-        _V2_HEADER.pack(
+    if mavlink1:
+        length = MAVLINK1_LENGTHS[message_id]  # (a KeyError: no MAVLink 1 form)
+        header = _V1_HEADER.pack(
+            mavlink2.PROTOCOL_MARKER_V1, length, seq, system, component, message_id
+        )
+    else:
+        length = len(payload)
+        while length > 1 and payload[length - 1] == 0:
+            length -= 1
+        header = _V2_HEADER.pack(
             mavlink2.PROTOCOL_MARKER_V2,
             length,
             0,
@@ -147,7 +168,6 @@ def pack(
             message_id & 0xFFFF,
             message_id >> 16,
         )
-        + payload[:length]
-    )
+    packet = header + payload[:length]
     crc = crc16.mcrf4xx(packet[1:] + bytes((crc_extra,)))
     return packet + crc.to_bytes(2, "little")

@@ -53,6 +53,7 @@ from mavest.mavlink.messages import (
     IMU_MESSAGES,
     MAVLink,
     StreamKey,
+    is_mavlink1,
     mavlink2,
     time_boot_ms_many,
 )
@@ -411,7 +412,8 @@ class BulkFeed:
 
     def _beats_end(self, records: bulk.RecordIndex, decoded: _Decoded, start: int, end: int) -> int:
         """``end``, or the first HEARTBEAT before it that changes what the pipeline knows
-        of a vehicle (a new one, or its fixed wing), which the stretch depends on."""
+        of a vehicle (a new one, its fixed wing, its MAVLink version), which the stretch
+        depends on."""
         pipeline = self.pipeline
         for row in (start + np.flatnonzero(decoded.kind[start:end] == BEAT)).tolist():
             message = self._decode(records, row)
@@ -422,7 +424,11 @@ class BulkFeed:
             ):
                 continue  # Pipeline.on_message leaves it there
             vehicle = pipeline.vehicles.get((system, component))
-            if vehicle is None or vehicle.fixed_wing != (message.type in _FIXED_WING_TYPES):
+            if (
+                vehicle is None
+                or vehicle.fixed_wing != (message.type in _FIXED_WING_TYPES)
+                or vehicle.mavlink1 != is_mavlink1(message)  # what our HEARTBEAT speaks
+            ):
                 return row
         return end
 
@@ -753,7 +759,7 @@ class BulkFeed:
             if self.tlog is not None:
                 self._write_records(records, start, stop)
             return
-        answers = self._answers(stream, steps, answered)
+        answers = self._answers(records, stream, steps, answered)
         if self.tlog is None:
             return
         answer_of = np.full(stop - start, -1, dtype=np.int64)
@@ -929,10 +935,11 @@ class BulkFeed:
         return np.array(chosen, dtype=np.int64)
 
     def _answers(
-        self, stream: Stream, steps: _Steps, answered: np.ndarray
+        self, records: bulk.RecordIndex, stream: Stream, steps: _Steps, answered: np.ndarray
     ) -> tuple[bulk.Packets, bulk.Packets | None]:
         """ATTITUDE (and ATTITUDE_QUATERNION) for the answered samples, as
-        Pipeline._answer packs them, with the encoder's sequence numbers."""
+        Pipeline._answer packs them, with the encoder's sequence numbers, each in the
+        MAVLink version its sample came in."""
         pipeline = self.pipeline
         q = steps.q[answered]
         rates = steps.gyro[answered] - steps.bias[answered]
@@ -948,6 +955,7 @@ class BulkFeed:
             encoder.system,
             encoder.component,
             mav.seq,
+            self.data[records.start[steps.rows[answered]] + 8] == mavlink2.PROTOCOL_MARKER_V1,
         )
         sent = answered.shape[0] * (2 if with_quaternion else 1)
         mav.seq = (mav.seq + sent) % 256

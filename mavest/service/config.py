@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mavest.estimator.config import ConfigError, EstimatorConfig, read_toml
+from mavest.estimator.config import ConfigError, EstimatorConfig, check_types, read_toml
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import (
     KEY_ENVIRONMENT_VARIABLE,
@@ -191,13 +191,7 @@ def _table(cls: type, values: dict[str, Any], name: str) -> Any:
         not unknown,
         f"unknown {name} parameter(s): {', '.join(unknown)}; known: {', '.join(sorted(known))}",
     )
-    converted = dict(values)
-    if "ignore_systems" in converted:
-        converted["ignore_systems"] = tuple(int(v) for v in converted["ignore_systems"])
-    try:
-        return cls(**converted)
-    except TypeError as error:
-        raise ConfigError(f"[{name}]: {error}") from None
+    return cls(**check_types(cls, values, name))
 
 
 def _require(condition: bool, message: str) -> None:

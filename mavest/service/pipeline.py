@@ -6,7 +6,10 @@ tlog's record time). Per vehicle stream (system, component, IMU message,
 instance) there is one estimator with its own clock, so two IMUs or two
 vehicles never mix. The vehicle's best stream is the one answered with
 ATTITUDE and ATTITUDE_QUATERNION, stamped with the vehicle's own
-``time_boot_ms``, from mavest's system and component id.
+``time_boot_ms``, from mavest's system and component id, in the MAVLink
+version the vehicle speaks. Requests addressed to that system and component
+(commands, FTP, parameters) are answered as a component that has none of them
+answers them.
 
 Everything here is synchronous and quick (tens of µs per sample); the runners
 call it from the event loop.
@@ -34,6 +37,8 @@ from mavest.mavlink.messages import (
     MAVLink,
     StreamKey,
     decode_imu,
+    ftp_opcode,
+    is_mavlink1,
     mavlink2,
     time_boot_ms,
 )
@@ -129,6 +134,7 @@ class Stream:
     vs_autopilot: EulerComparison = field(default_factory=EulerComparison)
     vs_truth: EulerComparison = field(default_factory=EulerComparison)
     heading_source_reported: bool = False
+    rate_warned: bool = False  # told the user the stream is too slow to estimate from
     # samples off the stream's timeline, held until the clock confirms or drops theirs
     held: list[ImuSample] = field(default_factory=list)
 
@@ -149,11 +155,15 @@ class Vehicle:
     last_t: float | None = None  # latest vehicle time seen, s since boot
     interval_requests: int = 0
     interval_asked: str = ""
+    interval_ignored: bool = False  # said that the requests did not bring the rate asked
     fixed_wing: bool = False  # from HEARTBEAT.type
     airspeed: float = math.nan  # m/s, from VFR_HUD
     airspeed_t: float = -math.inf  # vehicle time it arrived at
     gps: GpsAcceleration = field(default_factory=GpsAcceleration)
-    declination: float | None = None  # rad, the vehicle's COMPASS_DEC (PARAM_VALUE)
+    declination: float | None = None  # rad, its system's COMPASS_DEC (PARAM_VALUE)
+    # whether it speaks MAVLink 1 (its HEARTBEAT's, or before one its first IMU message's
+    # version): what mavest's HEARTBEAT and commands go to it as; None: not heard yet
+    mavlink1: bool | None = None
 
     def on_airspeed(self, airspeed: float, t: float) -> None:
         """A VFR_HUD airspeed (m/s) arriving at vehicle time t; an implausible one
@@ -194,6 +204,12 @@ class Pipeline:
         self._record_us = 0  # timestamp for records written now
         self._not_followed: set[StreamKey] = set()
         self.ignored_imu: dict[int, int] = {}  # IMU messages from systems not followed
+        self._declinations: dict[int, float] = {}  # rad, each system's COMPASS_DEC
+        # requests to mavest already reported in the log, by (requester, message)
+        self._requests_told: set[tuple[int, int, str]] = set()
+        # until the first IMU stream: the messages heard, by (system, component), so that
+        # a live run that gets none can say what it does get
+        self.heard_without_imu: dict[tuple[int, int], set[str]] = {}
         # whether the streams' estimators are fed in batches (a replay's BulkFeed), the
         # few samples that come one at a time too (Estimator's batch_fed)
         self.batch_fed = False
@@ -266,6 +282,8 @@ class Pipeline:
         if self._is_ours(system, component):
             return
         name = message._type
+        if not self.streams:
+            self.heard_without_imu.setdefault((system, component), set()).add(name)
         if name in _IMU_NAMES:
             self._on_imu(message, system, component)
         elif name == "ATTITUDE":
@@ -294,6 +312,9 @@ class Pipeline:
                 vehicle = self._vehicle(system, component)
                 vehicle.autopilot = message.autopilot
                 vehicle.fixed_wing = message.type in _FIXED_WING_TYPES
+                vehicle.mavlink1 = is_mavlink1(message)
+        elif name in _REQUESTS:
+            self._on_request(message, system, component)
         elif name == "COMMAND_ACK" and message.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
             result = mavlink2.enums["MAV_RESULT"].get(message.result)
             log.info(
@@ -322,6 +343,7 @@ class Pipeline:
         vehicle = self.vehicles.get((system, component))
         if vehicle is None:
             vehicle = self.vehicles[(system, component)] = Vehicle(system, component)
+            vehicle.declination = self._declinations.get(system)
         return vehicle
 
     def _any_vehicle(self, system: int) -> Vehicle | None:
@@ -352,6 +374,9 @@ class Pipeline:
             if stream is None:
                 self._not_followed.add(sample.stream)
                 return
+            vehicle = self.vehicles[(system, component)]
+            if vehicle.mavlink1 is None:  # no HEARTBEAT of its own yet
+                vehicle.mavlink1 = sample.mavlink1
         self._estimate(stream, sample, start)
 
     def _ignore_imu(self, system: int) -> None:
@@ -382,9 +407,12 @@ class Pipeline:
         )
         if not better and wanted.imu != "all":
             return None
+        # The stream's clock confirms a new timeline before the estimator sees it, and
+        # then hands it the samples it held meanwhile: the estimator believes every time.
+        estimator_config = self.config.estimator.replace(timeline_confirm=1)
         stream = Stream(
             key,
-            Estimator(self.config.estimator, batch_fed=self.batch_fed),
+            Estimator(estimator_config, batch_fed=self.batch_fed),
             vs_autopilot=EulerComparison(wanted.settle_time),
             vs_truth=EulerComparison(wanted.settle_time),
         )
@@ -510,26 +538,33 @@ class Pipeline:
             for sink in self.sinks:
                 sink.on_estimate(stream, sample, estimate, euler_tuple, self._record_us, processing)
         if stream.primary and t >= stream.next_output:
-            self._answer(stream, t, estimate, euler_tuple, gyro)
+            self._answer(stream, t, estimate, euler_tuple, gyro, sample.mavlink1)
 
     def _on_declination(self, system: int, component: int, declination: float) -> None:
-        """The vehicle's own declination, used unless the configuration sets one."""
-        if system in self.config.input.ignore_systems:
-            return
-        vehicle = self._vehicle(system, component)
+        """A system's declination (its autopilot's COMPASS_DEC, whichever component
+        reports it: ground stations log the vehicle's parameters under their own
+        component), for the vehicles of that system unless the configuration sets one."""
         if (
-            self.config.estimator.compass_dec != 0.0
+            system in self.config.input.ignore_systems
+            or self.config.estimator.compass_dec != 0.0
             or not math.isfinite(declination)
             or abs(declination) > math.pi
-            or declination == vehicle.declination
+            or declination == self._declinations.get(system)
         ):
             return
-        vehicle.declination = declination
+        self._declinations[system] = declination
+        vehicles = [v for v in self.vehicles.values() if v.system == system]
+        for vehicle in vehicles:
+            vehicle.declination = declination
         log.info(
-            "%s: declination %.2f° from its COMPASS_DEC", _who(vehicle), math.degrees(declination)
+            "%s: declination %.2f° from parameter COMPASS_DEC of %d/%d",
+            ", ".join(_who(v) for v in vehicles) or f"system {system}",
+            math.degrees(declination),
+            system,
+            component,
         )
         for key, stream in self.streams.items():
-            if (key.system, key.component) == (system, component):
+            if key.system == system:
                 stream.estimator.declination = declination
 
     def _gps_acceleration(
@@ -562,7 +597,10 @@ class Pipeline:
         estimate: Any,
         euler: tuple[float, float, float],
         gyro: tuple[float, float, float],
+        mavlink1: bool,
     ) -> None:
+        """ATTITUDE (and ATTITUDE_QUATERNION) for an estimate, in the MAVLink version of
+        the sample it answers."""
         output = self.config.output
         if output.attitude_rate > 0.0:
             period = 1.0 / output.attitude_rate
@@ -572,9 +610,9 @@ class Pipeline:
         rates = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
         encoder = self._encoder(stream.key.system)
         stamp = time_boot_ms(t)
-        attitude = encoder.attitude(stamp, euler, rates)
+        attitude = encoder.attitude(stamp, euler, rates, mavlink1)
         if output.attitude_quaternion:
-            self.emit(attitude, encoder.attitude_quaternion(stamp, estimate.q, rates))
+            self.emit(attitude, encoder.attitude_quaternion(stamp, estimate.q, rates, mavlink1))
         else:
             self.emit(attitude)
         stream.stats.answered += 1
@@ -622,19 +660,96 @@ class Pipeline:
             for packet in packets:
                 self.out_tlog.write(self._record_us, packet)
 
+    def _speaking(self) -> dict[int, bool]:
+        """The systems mavest speaks as (none until a vehicle's IMU is followed), each
+        with whether to speak MAVLink 1 there (every vehicle it speaks for there does)."""
+        own = self.config.output.system_id
+        speaking: dict[int, bool] = {}
+        for vehicle in self.vehicles.values():
+            if vehicle.primary is not None:
+                system = own or vehicle.system
+                speaking[system] = speaking.get(system, True) and vehicle.mavlink1 is True
+        return speaking
+
     def heartbeat(self) -> None:
         """One HEARTBEAT per system mavest speaks as (none until a vehicle is heard)."""
-        systems = {v.system for v in self.vehicles.values() if v.primary is not None}
-        if self.config.output.system_id:
-            systems = {self.config.output.system_id} if systems else set()
-        for system in sorted(systems):
-            self.emit(self._encoder(system).heartbeat())
+        for system, mavlink1 in sorted(self._speaking().items()):
+            self.emit(self._encoder(system).heartbeat(mavlink1))
+
+    def _on_request(self, message: Any, system: int, component: int) -> None:
+        """Answer a request addressed to mavest's own system and component, as a MAVLink
+        component without parameters, commands or files does: COMMAND_ACK unsupported,
+        an FTP NAK, PARAM_ERROR for a parameter read or set. A list of its parameters
+        gets nothing: the parameter protocol has no empty list (any PARAM_VALUE would
+        show in ground stations as a parameter). A broadcast (target 0) is the
+        autopilot's to answer, never mavest's. The answer goes in the request's version.
+        """
+        target = message.target_system
+        if message.target_component != self.config.output.component_id:
+            return
+        if target not in self._speaking():
+            return
+        name = message._type
+        mavlink1 = is_mavlink1(message)
+        encoder = self._encoder(target)
+        if name in ("COMMAND_LONG", "COMMAND_INT"):
+            answer = "MAV_RESULT_UNSUPPORTED"
+            packet = encoder.command_ack(
+                message.command, mavlink2.MAV_RESULT_UNSUPPORTED, system, component, mavlink1
+            )
+            name = f"{name} {_enum_name('MAV_CMD', message.command)}"
+        elif name == "FILE_TRANSFER_PROTOCOL":
+            if ftp_opcode(message.payload) >= mavlink2.MAV_FTP_OPCODE_ACK:
+                return  # an answer (ACK, NAK), never answered in turn
+            answer = "a NAK (MAV_FTP_ERR_UNKNOWNCOMMAND: no files here)"
+            packet = encoder.ftp_nak(
+                message.payload,
+                mavlink2.MAV_FTP_ERR_UNKNOWNCOMMAND,
+                message.target_network,
+                system,
+                component,
+                mavlink1,
+            )
+        elif name == "PARAM_REQUEST_LIST" or mavlink1:
+            # (PARAM_ERROR has no MAVLink 1 form)
+            self._tell_request(system, component, name, target, "nothing: it has no parameters")
+            return
+        else:  # PARAM_REQUEST_READ, PARAM_SET
+            answer = "PARAM_ERROR (does not exist)"
+            packet = encoder.param_error(
+                message.param_id,
+                getattr(message, "param_index", -1),
+                mavlink2.MAV_PARAM_ERROR_DOES_NOT_EXIST,
+                system,
+                component,
+            )
+        self._tell_request(system, component, name, target, answer)
+        self.emit(packet)
+
+    def _tell_request(
+        self, system: int, component: int, what: str, target: int, answer: str
+    ) -> None:
+        """Say, once per requester and kind of request, what mavest answers it."""
+        key = (system, component, what)
+        if key in self._requests_told:
+            return
+        self._requests_told.add(key)
+        log.info(
+            "%d/%d sent %s to mavest (%d/%d): answered %s (said once)",
+            system,
+            component,
+            what,
+            target,
+            self.config.output.component_id,
+            answer,
+        )
 
     def request_intervals(self) -> None:
         """Ask every vehicle for its IMU message at ``input.request_rate`` until it comes.
 
         Called every few seconds on a live link; asks at most five times per vehicle,
-        and stops once the stream arrives within 10 % of the asked rate.
+        and stops once the stream arrives within 10 % of the asked rate, above or below
+        (a stream faster than asked is slowed down: it costs the link and the CPU).
         """
         rate = self.config.input.request_rate
         if rate <= 0.0:
@@ -646,21 +761,59 @@ class Pipeline:
             if message in ("auto", "all"):
                 message = _NATIVE_IMU.get(vehicle.autopilot, "RAW_IMU")
             stream = self.streams.get(vehicle.primary) if vehicle.primary else None
-            if stream is not None and stream.key.message == message and stream.rate > 0.9 * rate:
+            if (
+                stream is not None
+                and stream.key.message == message
+                and abs(stream.rate - rate) <= 0.1 * rate
+            ):
                 continue
-            if vehicle.interval_requests >= 5:
+            if vehicle.interval_requests >= INTERVAL_REQUESTS:
+                if not vehicle.interval_ignored:
+                    vehicle.interval_ignored = True
+                    now = f"at {stream.rate:.1f} Hz" if stream is not None else "nothing"
+                    log.warning(
+                        "%s still sends %s %s after %d requests for %g Hz: it does not take "
+                        "MAV_CMD_SET_MESSAGE_INTERVAL for this message; set the rate on the "
+                        "vehicle (ArduPilot SRn_RAW_SENS, PX4 `mavlink stream`)",
+                        _who(vehicle),
+                        message,
+                        now,
+                        INTERVAL_REQUESTS,
+                        rate,
+                    )
                 continue
             vehicle.interval_requests += 1
             vehicle.interval_asked = message
             log.info("asking %s for %s at %g Hz", _who(vehicle), message, rate)
             self.emit(
                 self._encoder(vehicle.system).set_message_interval(
-                    vehicle.system, vehicle.component, message, rate
+                    vehicle.system, vehicle.component, message, rate, vehicle.mavlink1 is True
                 )
             )
 
 
+# How many times a vehicle is asked for its IMU message's rate before mavest gives up.
+INTERVAL_REQUESTS = 5
+
 _IMU_NAMES = frozenset(IMU_MESSAGES)
+
+# Requests a MAVLink component answers when they are addressed to it.
+_REQUESTS = frozenset(
+    (
+        "COMMAND_LONG",
+        "COMMAND_INT",
+        "FILE_TRANSFER_PROTOCOL",
+        "PARAM_REQUEST_LIST",
+        "PARAM_REQUEST_READ",
+        "PARAM_SET",
+    )
+)
+
+
+def _enum_name(enum: str, value: int) -> str:
+    entry = mavlink2.enums[enum].get(value)
+    return entry.name if entry is not None else str(value)
+
 
 _FIXED_WING_TYPES = frozenset(
     getattr(mavlink2, name)

@@ -16,6 +16,7 @@ import logging
 import math
 import sys
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
@@ -28,6 +29,7 @@ from mavest.mavlink.links import Link, make_link, parse_endpoint
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import Signing
 from mavest.mavlink.tlog import TlogReader, TlogRecord, TlogWriter, message_ids
+from mavest.paths import check_outputs
 from mavest.service import bulk
 from mavest.service.config import ServiceConfig
 from mavest.service.pipeline import Pipeline, Stream
@@ -98,6 +100,10 @@ class RunReport:
     outputs: Outputs = field(default_factory=Outputs)
     # an output file that stopped early (disk full, write error) → why
     output_errors: dict[Path, str] = field(default_factory=dict)
+    # of ``elapsed``, the seconds spent compiling the filter (a first run): not throughput
+    compile_seconds: float = 0.0
+    # the replay was over and a served viewer went on serving it until the stop
+    lingered: bool = False
 
     @property
     def streams(self) -> list[Stream]:
@@ -168,6 +174,21 @@ class _Opened:
             self.viewer.flush()
             self._drop_idle_recorder()
 
+    @property
+    def serving(self) -> bool:
+        """Whether a web viewer mavest started is serving the recording."""
+        return self.viewer is not None and self.viewer.serving
+
+    def flush_all(self) -> None:
+        """Everything buffered to its file or viewer now (the recorder's batches too)."""
+        if self.tlog is not None:
+            self.tlog.flush()
+        if self.recorder is not None and self.sinks:
+            self.recorder.flush()
+            self._recorder_flushed = time.monotonic()
+        if self.viewer is not None:
+            self.viewer.flush()
+
     def check_space(self) -> None:
         """Close the .rrd while it can still be completed if its disk is nearly full."""
         if self.viewer is not None:
@@ -205,7 +226,7 @@ def _settle_heap() -> None:
     A full collection walks every tracked object, and numba, numpy and rerun leave
     hundreds of thousands of them; the Rerun recorder's tuples (one per sample, until
     its block is packed) make collections frequent. Frozen, those objects are no
-    longer walked (see the README's known limits for what the recorder still costs).
+    longer walked (docs/limits.md says what the recorder still costs).
 
     Only the young generations are collected first: that is where the start's garbage
     is (some hundred objects). A full collection walked every object of numba, the
@@ -258,14 +279,22 @@ async def replay(
     progress: bool | None = None,
     stop: asyncio.Event | None = None,
     fast: bool = True,
+    linger: Callable[[RunReport], Awaitable[None]] | None = None,
 ) -> RunReport:
-    """Replay a tlog through the pipeline (:class:`~mavest.mavlink.tlog.TlogError` if unusable).
+    """Replay a tlog through the pipeline (:class:`~mavest.mavlink.tlog.TlogError` if unusable;
+    :class:`~mavest.paths.OutputPathError` for an output that is the log or another output).
 
     ``fast``: clean stretches of the file go through :class:`~mavest.service.bulk.BulkFeed`
     (the same outcome, compiled) unless the replay is paced; False takes every record
-    one at a time, as the live service does.
+    one at a time, as the live service does. ``linger``: when the whole log was replayed
+    into a viewer mavest serves (``--rerun serve``), awaited with the finished report
+    before the viewer is stopped (it holds the recording: the served page shows nothing
+    once it goes).
     """
     outputs = outputs or Outputs()
+    check_outputs(
+        {"the log being replayed": path}, {"--out-tlog": outputs.tlog, "--rrd": outputs.rrd}
+    )
     reader = TlogReader.open(path, REPLAY_MESSAGES)
     opened = _Opened(outputs)
     tlog = opened.tlog
@@ -301,6 +330,7 @@ async def replay(
                 if reader.stats.records % 256:
                     continue
             bar.update(reader.position, _estimated(pipeline))
+            _check_rates(pipeline)
             opened.check_space()
             if speed:
                 if first_us is None:
@@ -312,17 +342,35 @@ async def replay(
             if stop is not None and stop.is_set():
                 report.interrupted = True
                 break
+        _check_rates(pipeline)
+        if linger is not None and opened.serving and not report.interrupted:
+            if feed is not None:
+                feed.close()
+                feed = None
+            bar.finish()
+            opened.flush_all()
+            _fill_replay_report(report, reader, opened, start)
+            report.lingered = True
+            await linger(report)
     finally:
         if feed is not None:
             feed.close()
         bar.finish()
         opened.close()
+    if not report.lingered:
+        _fill_replay_report(report, reader, opened, start)
+    report.output_errors = opened.errors()
+    return report
+
+
+def _fill_replay_report(
+    report: RunReport, reader: TlogReader, opened: _Opened, start: float
+) -> None:
     report.output_errors = opened.errors()
     report.elapsed = time.perf_counter() - start
     report.records = reader.stats.records
     report.bad_records = reader.stats.bad_crc
     report.skipped_bytes = reader.stats.skipped_bytes + reader.stats.truncated_bytes
-    return report
 
 
 # Clean records indexed per scan: about 8 s of a 1 kHz log with its truth, so that a
@@ -385,6 +433,7 @@ async def run_live(
     ``signing``: sign what is sent and verify what is heard (MAVLink 2 signing).
     """
     outputs = outputs or Outputs()
+    check_outputs({}, {"--out-tlog": outputs.tlog, "--rrd": outputs.rrd})
     endpoints = [parse_endpoint(connection, baud)] + [
         parse_endpoint(c, baud) for c in out_connections
     ]
@@ -468,19 +517,103 @@ async def _serve(
             asyncio.create_task(_every(1.0 / config.output.heartbeat_rate, pipeline.heartbeat))
         )
     tasks.append(asyncio.create_task(_every(2.0, pipeline.request_intervals)))
+    tasks.append(
+        asyncio.create_task(
+            _every(NO_IMU_REPEAT, lambda: _no_imu_yet(pipeline, links[0]), first=NO_IMU_FIRST)
+        )
+    )
     if status_period > 0:
         tasks.append(asyncio.create_task(_every(status_period, lambda: _status(pipeline))))
     tasks.append(asyncio.create_task(_every(1.0, opened.flush)))
     await stop.wait()
 
 
-async def _every(period: float, action: object) -> None:
+async def _every(period: float, action: Callable[[], object], first: float | None = None) -> None:
+    await asyncio.sleep(period if first is None else first)
     while True:
+        action()
         await asyncio.sleep(period)
-        action()  # type: ignore[operator]
+
+
+# A live run that has no IMU stream says what it hears this long after it starts
+# listening, and again every NO_IMU_REPEAT seconds until a stream comes.
+NO_IMU_FIRST = 5.0
+NO_IMU_REPEAT = 20.0
+
+_STREAM_SETUP = (
+    "ask for one with --request-rate 50 (MAV_CMD_SET_MESSAGE_INTERVAL), or set it up on the "
+    "vehicle: ArduPilot SRn_RAW_SENS (the port's stream rate, e.g. SR0_RAW_SENS=50), "
+    "PX4 `mavlink stream -d DEVICE -s HIGHRES_IMU -r 50`"
+)
+
+
+def _no_imu_yet(pipeline: Pipeline, link: Link) -> None:
+    """Say what is heard when no IMU stream is, and what to do about it."""
+    if pipeline.streams:
+        return
+    heard = pipeline.heard_without_imu
+    if pipeline.ignored_imu:
+        systems = ", ".join(str(s) for s in sorted(pipeline.ignored_imu))
+        log.warning(
+            "IMU messages come only from system %s, which is not followed "
+            "(--system ID picks a vehicle; [input] ignore_systems lists those never followed)",
+            systems,
+        )
+    elif heard:
+        described = "; ".join(
+            f"{', '.join(sorted(names))} from {system}/{component}"
+            for (system, component), names in sorted(heard.items())
+        )
+        asked = pipeline.config.input.request_rate
+        advice = (
+            f"asked for it at {asked:g} Hz; the vehicle has not answered with one yet"
+            if asked > 0
+            else _STREAM_SETUP
+        )
+        log.warning("no IMU message yet; heard %s. %s", described, advice)
+    elif pipeline.bad_packets:
+        log.warning(
+            "only damaged MAVLink on %s (%d bad packets): a wrong --baud, or not MAVLink?",
+            link,
+            pipeline.bad_packets,
+        )
+    else:
+        log.warning(
+            "nothing heard on %s yet: is the vehicle (or its router, e.g. MAVProxy --out) "
+            "sending to this address and port?",
+            link,
+        )
+
+
+# Below this IMU rate an estimate cannot follow a moving vehicle: the filter takes the
+# time between samples as a gap and re-aligns tilt to the accelerometer alone.
+LOW_IMU_RATE = 20.0
+
+
+def _check_rates(pipeline: Pipeline) -> None:
+    """Warn, once per stream, of an IMU stream too slow to estimate from."""
+    for stream in pipeline.streams.values():
+        stats = stream.stats
+        if stream.rate_warned or stats.estimated < 10:
+            continue
+        realigning = stats.realigned > stats.estimated // 2
+        if 0.0 < stream.rate < LOW_IMU_RATE or realigning:
+            stream.rate_warned = True
+            log.warning(
+                "%s: IMU at %.1f Hz is too slow for this estimate%s: attitude follows the "
+                "accelerometer alone and can be tens of degrees off while the vehicle moves. "
+                "Raise the IMU stream rate (live: --request-rate 50, or ArduPilot's "
+                "SRn_RAW_SENS); the vehicle's onboard log holds the IMU at its full rate",
+                stream.key,
+                stream.rate,
+                f" ({stats.realigned} of {stats.estimated} samples came after a gap)"
+                if realigning
+                else "",
+            )
 
 
 def _status(pipeline: Pipeline) -> None:
+    _check_rates(pipeline)
     for stream in pipeline.streams.values():
         asked = ""
         vehicle = pipeline.vehicles.get((stream.key.system, stream.key.component))
@@ -510,11 +643,17 @@ def format_summary(report: RunReport) -> str:
     pipeline = report.pipeline
     lines = []
     samples = _estimated(pipeline)
-    rate = samples / report.elapsed if report.elapsed > 0 else math.inf
+    working = report.elapsed - report.compile_seconds
+    rate = samples / working if working > 0 else math.inf
     status = " (interrupted)" if report.interrupted else ""
+    compiling = (
+        f" ({report.compile_seconds:.0f} s of it compiling the filter, a first run)"
+        if report.compile_seconds >= 0.5
+        else ""
+    )
     lines.append(
-        f"{report.source}{status}: {report.records} messages in {report.elapsed:.2f} s, "
-        f"{samples} IMU samples estimated ({rate / 1000:.1f} k samples/s)"
+        f"{report.source}{status}: {report.records} messages in {report.elapsed:.2f} s"
+        f"{compiling}, {samples} IMU samples estimated ({rate / 1000:.1f} k samples/s)"
     )
     if report.bad_records or report.skipped_bytes:
         lines.append(

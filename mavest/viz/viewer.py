@@ -125,8 +125,7 @@ class Viewer:
         self.rrd_error: str | None = None  # why the .rrd stopped early, if it did
         sinks: list[rr.FileSink | rr.GrpcSink] = []
         if request.rrd is not None:
-            try:
-                request.rrd.parent.mkdir(parents=True, exist_ok=True)
+            try:  # (in an existing folder: a mistyped path is refused, as for --out-tlog)
                 request.rrd.touch()
             except OSError as error:
                 raise ViewerError(f"cannot write {request.rrd}: {error.strerror}") from None
@@ -145,6 +144,15 @@ class Viewer:
                 self._abandon()
                 self._stop_process()
                 raise ViewerError(f"cannot write {request.rrd}: {error}") from None
+
+    @property
+    def serving(self) -> bool:
+        """Whether the web viewer mavest started for ``serve`` is up (it holds the data)."""
+        return (
+            self.request.mode == "serve"
+            and self.process is not None
+            and self.process.poll() is None
+        )
 
     @property
     def active(self) -> bool:

@@ -1,0 +1,77 @@
+"""The one rule for where a run may write: never over what it reads.
+
+Every command checks its outputs with :func:`check_outputs` before it opens
+anything for writing, so that ``mavest replay f.tlog --out-tlog f.tlog`` (or the
+same through a symbolic or hard link) leaves ``f.tlog`` untouched instead of
+truncating the file it is reading. Two outputs on one path are refused as well
+(the file would be neither), and so is an output whose folder does not exist:
+mavest creates no folders a user did not ask for (``demo --output-dir`` is the
+one option that names a folder to make).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+
+class OutputPathError(ValueError):
+    """An output that would overwrite an input or another output, or has no folder."""
+
+
+def _identity(path: Path) -> tuple[str, tuple[int, int] | None]:
+    """The resolved path, and (device, inode) when the file exists (hard links)."""
+    resolved = os.path.realpath(path)
+    try:
+        status = os.stat(resolved)
+    except OSError:
+        return resolved, None
+    return resolved, (status.st_dev, status.st_ino)
+
+
+def _same(a: tuple[str, tuple[int, int] | None], b: tuple[str, tuple[int, int] | None]) -> bool:
+    return a[0] == b[0] or (a[1] is not None and a[1] == b[1])
+
+
+def check_outputs(
+    inputs: Mapping[str, str | Path | None], outputs: Mapping[str, str | Path | None]
+) -> None:
+    """Refuse (:class:`OutputPathError`) outputs that are inputs, each other, or have no
+    folder to go in. Keys name the options (``"--out-tlog"``) for the message; a value of
+    None is an option not given."""
+    read = {name: _identity(Path(p)) for name, p in inputs.items() if p is not None}
+    written: dict[str, tuple[str, tuple[int, int] | None]] = {}
+    for name, given in outputs.items():
+        if given is None:
+            continue
+        path = Path(given)
+        identity = _identity(path)
+        for input_name, input_identity in read.items():
+            if _same(identity, input_identity):
+                raise OutputPathError(f"{name} {path} is {input_name}: refusing to write over it")
+        for other, other_identity in written.items():
+            if _same(identity, other_identity):
+                raise OutputPathError(f"{name} and {other} are both {path}: give each its own file")
+        if os.path.isdir(identity[0]):
+            raise OutputPathError(f"{name} {path} is a folder: name a file in it")
+        folder = os.path.dirname(identity[0])
+        if not os.path.isdir(folder):
+            raise OutputPathError(f"{name} {path}: no folder {os.path.dirname(path) or '.'}")
+        written[name] = identity
+
+
+def write_atomically(path: str | Path, data: bytes) -> None:
+    """Write a whole file or nothing: a run stopped half-way leaves the old file (or
+    none), never a part. The temporary file is in the same folder, so the rename
+    cannot cross file systems."""
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        with temporary.open("wb") as stream:
+            stream.write(data)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
