@@ -1,7 +1,7 @@
 """Small immutable Lie-group types over the kernels of :mod:`mavest.so3`.
 
 :class:`SO3` is a rotation; :class:`SO3xR3` is the filter's state group
-X = [R, b] with X₁ ∘ X₂ = [R₁R₂, b₁ + b₂] (seed 000). Both offer the same
+X = [R, b] with X₁ ∘ X₂ = [R₁R₂, b₁ + b₂] (docs/design.md#state-and-error). Both offer the same
 interface — ``identity``, ``exp``, ``log``, ``compose`` (``@``), ``inverse``,
 ``adjoint`` — and the tests check the group axioms on both alike. The
 filter's errors read naturally in these terms: left X = Exp(δ) ∘ X̄, right
@@ -111,7 +111,7 @@ class SO3xR3:
 
     @classmethod
     def exp(cls, tangent: ArrayLike) -> SO3xR3:
-        """Λ(δ) = [Exp(δθ), δb], the lifting map of seed 000."""
+        """Λ(δ) = [Exp(δθ), δb], the lifting map of the filter's error."""
         tangent = _frozen(tangent, (6,))
         return cls(SO3.exp(tangent[:3]), tangent[3:])
 

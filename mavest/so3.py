@@ -1,6 +1,6 @@
 """The rotation group SO(3): Exp/Log, hat/vee, Jacobians, quaternions, Euler angles.
 
-Conventions (DESIGN.md): quaternions are (w, x, y, z) with the Hamilton product;
+Conventions (docs/design.md#conventions): quaternions are (w, x, y, z), Hamilton product;
 a rotation maps body to world, ``v_world = R v_body``; Euler angles are ZYX
 (yaw ψ, pitch θ, roll φ), ``R = Rz(ψ) Ry(θ) Rx(φ)``, as MAVLink's ATTITUDE.
 

@@ -1,15 +1,15 @@
 """The unit sphere S²: where a direction measurement (gravity, later the magnetic field) lives.
 
 A direction has two degrees of freedom, so its residual is a 2-vector in the
-tangent plane, not a 3-D difference of unit vectors (seed 000, DESIGN.md).
+tangent plane, not a 3-D difference of unit vectors (docs/design.md#gravity-update).
 
 The residual of a predicted direction h against a measured direction z is the
 rotation vector ρ that turns h onto z along the great circle,
 
     ρ = θ (h × z)/‖h × z‖,   θ = atan2(‖h × z‖, h·z),
 
-expressed in an orthonormal basis B_z of the plane ⊥ z: r = B_zᵀ ρ. (Seed 000
-wrote θ = u·v; the angle is the arc-cosine of the dot product, and atan2 of the
+expressed in an orthonormal basis B_z of the plane ⊥ z: r = B_zᵀ ρ. (Not θ = u·v,
+a common slip: the angle is the arc-cosine of the dot product, and atan2 of the
 sine and cosine keeps it accurate at 0 and π.) Because ρ ⊥ z, the basis tied to
 the measurement is constant while the state moves, so r is a smooth function of
 the state whose Jacobian is exact: what the iterated filter needs to reach the
@@ -164,7 +164,7 @@ def log_jacobian(h: np.ndarray, z: np.ndarray) -> np.ndarray:
 def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """The smallest rotation R with R u = v, for unit vectors u, v.
 
-    Seed 000's closed form, with its angle corrected (cos θ = u·v, not θ = u·v),
-    is Exp of the S² logarithm.
+    The closed form I + [u×v]× + ((1 − u·v)/‖u×v‖²)[u×v]×², whose angle has
+    cos θ = u·v (not θ = u·v), is Exp of the S² logarithm.
     """
     return so3.exp(log(u, v))

@@ -190,7 +190,8 @@ def test_gravity_update_adds_no_heading_information_with_the_left_error(update: 
 
 
 def test_the_exponential_reset_leaks_tilt_information_into_heading() -> None:
-    # DESIGN.md's trap: J_l(δ̂) with a horizontal δ̂ couples heading into tilt
+    # the trap of docs/design.md#recursion-and-reset: J_l(δ̂) with a horizontal δ̂
+    # couples heading into tilt
     config = update_config("left", "exp", reset="full", update="ekf", accel_noise_density=0.5)
     assert abs(heading_information(config)) > 1e-3
 
@@ -205,7 +206,7 @@ def reset_covariance_errors(
 
     ``elongated``: Σ has the spread along one axis ⊥ the correction and a
     tenth of the variance on the others (the shape where the rotation part
-    of the reset shows; DESIGN.md's figures are for this shape). Otherwise
+    of the reset shows). Otherwise
     Σ is isotropic, where only the reset's scaling matters.
     """
     rng = np.random.default_rng(5)
@@ -275,8 +276,8 @@ def test_left_and_right_error_with_full_reset_give_the_same_estimate(update: str
     results = {}
     for side in ("left", "right"):
         # Without the low-pass: its filter steps amplify rounding differences
-        # (two runs 1e-12 apart end up ~0.02° apart, see the README's known
-        # limits), which would hide a real difference among rounding noise.
+        # (two runs 1e-12 apart end up ~0.02° apart, see docs/limits.md), which would
+        # hide a real difference among rounding noise.
         config = EstimatorConfig(
             update=update, error=side, chart="exp", reset="full", accel_lowpass_time=0.0
         )

@@ -34,7 +34,7 @@ def test_tangent_basis_of_coordinate_axes(axis: int) -> None:
 def test_log_is_the_shortest_rotation_onto_z(h: np.ndarray, z: np.ndarray) -> None:
     rho = sphere.log(h, z)
     np.testing.assert_allclose(so3.exp(rho) @ h, z, atol=1e-12)
-    angle = np.arctan2(np.linalg.norm(np.cross(h, z)), h @ z)  # not h·z (seed 000's slip)
+    angle = np.arctan2(np.linalg.norm(np.cross(h, z)), h @ z)  # not h·z (a common slip)
     assert abs(np.linalg.norm(rho) - angle) < 1e-12
     assert abs(rho @ h) < 1e-12 and abs(rho @ z) < 1e-12
 

@@ -1,7 +1,7 @@
 """Autopilot onboard logs: the logged IMU samples beside the autopilot's own attitude.
 
 Two formats, one loader each, both returning an :class:`AutopilotLog` in mavest's
-conventions (DESIGN.md, "Conventions"): body FRD, world NED, quaternions (w, x, y, z)
+conventions (docs/design.md#conventions): body FRD, world NED, quaternions (w, x, y, z)
 body → NED, SI units, float64, time in seconds from the first IMU sample.
 
 * ArduPilot dataflash (``.bin``), :func:`load_dataflash`, read with pymavlink's

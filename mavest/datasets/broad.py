@@ -16,13 +16,13 @@ movement       N       bool, the samples the dataset's scoring uses
 
 and ``attrs['sampling_rate']`` in Hz.
 
-mavest works in FRD body / NED world (DESIGN.md, "Conventions"), so the loader converts
+mavest works in FRD body / NED world (docs/design.md#conventions), so the loader converts
 explicitly, once, here:
 
 * Body: the BROAD IMU frame has z up. Our FRD body frame is the IMU frame turned 180°
   about its x axis: ``v_frd = (x, −y, −z)``, i.e. ``v_imu = C_IMU_FRD v_frd`` with
   ``C_IMU_FRD = diag(1, −1, −1)``. Gyro, accelerometer and magnetometer all transform
-  this way (at rest the accelerometer then reads about (0, 0, −g), as in DESIGN.md).
+  this way (at rest the accelerometer then reads about (0, 0, −g), as mavest expects).
 * World: ``v_ned = (y, x, −z)`` of the ENU vector, ``C_NED_ENU`` below.
 * Truth: ``R(FRD → NED) = C_NED_ENU · R_opt(IMU → ENU) · C_IMU_FRD``, in quaternions
   ``q_truth = q(ENU→NED) ⊗ q_opt ⊗ q(FRD→IMU)``. Rows where ``opt_quat`` is NaN stay NaN.

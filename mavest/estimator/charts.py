@@ -1,6 +1,6 @@
 """Attitude error charts: how a 3-vector δθ names a rotation near the reference.
 
-Three charts (DESIGN.md, seed 000, Mueller et al. 2017):
+Three charts (docs/design.md#state-and-error; Mueller et al. 2017):
 
 * left / exp:            R = Exp(δθ) R̄             (δθ in the world frame)
 * right / exp:           R = R̄ Exp(δθ)             (δθ in the body frame)
@@ -11,7 +11,7 @@ each; they differ in what a *finite* error is, which is what the reset and the
 iterated update see. The heading-tilt chart separates rotation about the world
 vertical exactly: left-multiplying by a heading rotation changes ψ and nothing
 else. With gravity alone heading is unobservable, and the exponential chart's
-reset then moves heading uncertainty into tilt (the trap DESIGN.md describes);
+reset then moves heading uncertainty into tilt (docs/design.md#heading-tilt-chart);
 in this chart the reset Jacobian has no heading-to-tilt entries.
 
 The reset (Mueller et al.): after a correction δ̂ the reference moves to

@@ -3,7 +3,7 @@
 At rest the accelerometer reads the specific force a ≈ −g Rᵀe₃ (FRD body, NED
 world), so z = −a/‖a‖ measures h(R) = Rᵀe₃, the world's "down" seen from the
 body. Its magnitude carries no attitude information and its rotation about
-itself is unobservable: a 2-D measurement (seed 000, DESIGN.md).
+itself is unobservable: a 2-D measurement (docs/design.md#gravity-update).
 
 Residual: r = B_zᵀ ρ(h, z) (see :mod:`mavest.sphere`); Jacobian with respect to
 the attitude error at the linearisation point,

@@ -55,7 +55,7 @@ the acceleration known, gravity does see heading in turns and keeps its
 gain; without a magnetometer the 6-D filter is unchanged.)
 
 Measured (tools/consistency.py --quick --runs 20; BROAD 9-D mean total /
-heading, README): the heading-only gain with the leak as white noise per
+heading, docs/results.md): the heading-only gain with the leak as white noise per
 sample and the covariance from H_ψ was accurate (2.000° / 1.869°) but
 optimistic while a large heading error converged (``large_heading_9d``
 ANEES 11.0, out of band); the Joseph form with the full H and that gain
