@@ -27,7 +27,14 @@ tool = load_tool("long_run")
 
 
 @pytest.fixture(scope="module")
-def short_run() -> tuple[subprocess.CompletedProcess[str], dict[str, str]]:
+def results(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The document the short run writes its section to."""
+    return tmp_path_factory.mktemp("docs") / "results.md"
+
+
+@pytest.fixture(scope="module")
+def short_run(results: Path) -> tuple[subprocess.CompletedProcess[str], dict[str, str]]:
+    # --results alone: the table in Markdown, on the terminal and in the document
     finished = subprocess.run(
         [
             sys.executable,
@@ -38,7 +45,8 @@ def short_run() -> tuple[subprocess.CompletedProcess[str], dict[str, str]]:
             str(RATE),
             "--block-minutes",
             str(MINUTES / 2),
-            "--markdown",
+            "--results",
+            str(results),
         ],
         capture_output=True,
         text=True,
@@ -80,7 +88,7 @@ def test_short_run_reports_accuracy_per_block(short_run) -> None:
     for value in blocks.values():
         roll, pitch, tilt, yaw, count = _numbers(value)
         assert count > 0
-        # the ArduPilot configuration on this flight: about 1° (README's service section)
+        # the ArduPilot configuration on this flight: about 1° (docs/results.md)
         assert 0.0 < max(roll, pitch) <= tilt < 3.0
         assert 0.0 < yaw < 5.0
     ratios = _numbers(rows["last / first scored block RMS"])
@@ -101,6 +109,18 @@ def test_short_run_reports_memory_and_the_replay(short_run) -> None:
     # the children's own peaks, not this process's: pymavlink alone stays small
     assert 10 < peak_pymavlink < peak_mavest < 2048
     assert wall_mavest > 0 and wall_pymavlink > 0
+
+
+def test_short_run_writes_its_table_as_the_long_runs_section(short_run, results: Path) -> None:
+    finished, rows = short_run
+    section = results.read_text().split("<!-- BEGIN long-runs -->\n", 1)[1]
+    assert section.startswith("## Long runs\n")
+    assert (
+        f"Regenerate: `.venv/bin/python tools/long_run.py --minutes {MINUTES} --rate {RATE} "
+        f"--block-minutes {MINUTES / 2} --results {results}`"
+    ) in section
+    assert f"\n\n{finished.stdout.strip()}\n\n<!-- END long-runs -->\n" in section
+    assert len(rows) > 10
 
 
 def test_covariance_health_counts_what_is_wrong() -> None:

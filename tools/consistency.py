@@ -1,6 +1,7 @@
 """Monte Carlo consistency of every filter variant: ANEES, NIS, tilt and heading RMSE.
 
     .venv/bin/python tools/consistency.py [--runs 100] [--scenario NAME ...] [--quick]
+                                          [--results [FILE]]
 
 For each scenario (mavest.evaluation.consistency.SCENARIOS) and every variant
 — update EKF / iterated / sigma-point × reset none / first-order / full × error
@@ -10,7 +11,8 @@ band, ANEES over the first and last 10 s, the mean NIS of the gravity updates,
 and tilt and heading RMSE. Everything but the structure is mavest's default
 configuration, and the simulated flights carry exactly the noise and vehicle
 motion that configuration claims (bursts excepted). "ok": the whole-run ANEES,
-6 dof and attitude, inside the band.
+6 dof and attitude, inside the band. --results writes the printed tables as the
+Consistency section of docs/results.md (or FILE).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 
 from mavest import EstimatorConfig
+from mavest.evaluation import report
 from mavest.evaluation.consistency import SCENARIOS, Scenario, Summary, monte_carlo
 
 
@@ -86,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--seed", type=int, default=0)
+    report.add_results_option(parser)
     args = parser.parse_args(argv)
 
     default = EstimatorConfig()
@@ -107,12 +111,13 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessPoolExecutor(args.jobs) as pool:
         results = list(pool.map(_job, jobs))
     elapsed = time.perf_counter() - start
-    print(f"mavest Monte Carlo consistency: {len(configs)} variants, {elapsed:.0f} s\n")
-    for scenario in scenarios:
-        parts = [r for job, r in zip(jobs, results, strict=True) if job[1] is scenario]
-        combined = [Summary.combine([p[i] for p in parts]) for i in range(len(configs))]
-        print(format_table(scenario, configs, combined, default))
-        print()
+    with report.results_section(args.results, "Consistency", __file__, argv, __doc__):
+        print(f"mavest Monte Carlo consistency: {len(configs)} variants, {elapsed:.0f} s\n")
+        for scenario in scenarios:
+            parts = [r for job, r in zip(jobs, results, strict=True) if job[1] is scenario]
+            combined = [Summary.combine([p[i] for p in parts]) for i in range(len(configs))]
+            print(format_table(scenario, configs, combined, default))
+            print()
     return 0
 
 

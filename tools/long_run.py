@@ -1,7 +1,7 @@
 """Long runs: an hour of simulated 1 kHz flight through the pipeline, in accelerated time.
 
     .venv/bin/python tools/long_run.py [--minutes 60] [--rate 1000] [--seed 1]
-        [--config FILE] [--only pipeline|replay] [--markdown]
+        [--config FILE] [--only pipeline|replay] [--markdown] [--results [FILE]]
 
 Pipeline: the JSBSim Cessna of ``mavest sim`` (ArduPilot RAW_IMU with the
 magnetometer, SIMSTATE truth per sample, GPS and VFR_HUD at 10 Hz), made by
@@ -21,7 +21,8 @@ for its fixed cost. The exit status is 1 when a health check fails: a NaN,
 a covariance not positive definite or out of bounds, RSS growing by more than
 ``--max-growth`` MiB after the warm-up, the last block's tilt more than
 ``--max-drift`` × the first's (and 0.25° worse), a sample not answered, or a
-replay that failed.
+replay that failed. ``--results`` writes the table (as Markdown, failed checks
+included) as the Long runs section of docs/results.md (or FILE).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from mavest.evaluation import report
 from mavest.evaluation.online import EulerComparison
 from mavest.mavlink.tlog import TlogReader, TlogWriter
 from mavest.service.config import ServiceConfig
@@ -638,6 +640,7 @@ def main(argv: list[str] | None = None) -> int:
         "--only", choices=PARTS, action="append", help="run only this part (default: both)"
     )
     parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    report.add_results_option(parser)
     args = parser.parse_args(argv)
     if not (args.minutes > 0 and args.rate > 0 and args.block_minutes > 0):
         parser.error("--minutes, --rate and --block-minutes must be positive")
@@ -661,7 +664,8 @@ def main(argv: list[str] | None = None) -> int:
         if "replay" in parts:
             replayed = replay_part(tlog, args.config, args.rate, args.seed, workdir)
             replay_rows(table, replayed, expected)
-    print(table.render(args.markdown))
+    with report.results_section(args.results, "Long runs", __file__, argv, __doc__):
+        print(table.render(args.markdown or args.results is not None))
     if table.failures:
         print(f"failed: {', '.join(table.failures)}", file=sys.stderr)
     return 1 if table.failures else 0

@@ -1,6 +1,7 @@
 """What ``Estimator.update`` costs beyond the filter step: a sample in, an estimate out.
 
-    .venv/bin/python tools/online_overhead.py [--seconds 30] [--rate 200] [--rounds 9]
+    .venv/bin/python tools/online_overhead.py [--seconds 10] [--rate 200] [--rounds 25]
+                                              [--markdown] [--results [FILE]]
 
 The same simulated flight goes through ``Estimator.update`` one sample at a time
 (with the sample's vectors as float64 arrays, as tuples of floats, as arrays with
@@ -10,7 +11,8 @@ over the same steps: the batch's per-sample time is the step's own cost, the
 difference the online call's overhead. Where the extension ``_online`` is built,
 the Python path (numba's entry point, what runs without it) is measured beside it.
 Each figure is the fastest of ``--rounds`` interleaved rounds (the least disturbed
-by a shared machine), in µs per sample.
+by a shared machine), in µs per sample. --results writes the table (as Markdown) as
+the Online overhead section of docs/results.md (or FILE).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import numpy as np
 
 from mavest import Estimator
 from mavest.estimator import estimator as estimator_module
+from mavest.evaluation import report
 from mavest.sim import Motion, simulate
 
 
@@ -48,7 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=10.0, help="flight length (s)")
     parser.add_argument("--rate", type=float, default=200.0, help="IMU rate (Hz)")
     parser.add_argument("--rounds", type=int, default=25, help="interleaved rounds")
+    parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    report.add_results_option(parser)
     args = parser.parse_args(argv)
+    markdown = args.markdown or args.results is not None
 
     data = simulate(args.seconds, args.rate, motion=Motion(), seed=1)
     t = data.t
@@ -111,11 +117,18 @@ def main(argv: list[str] | None = None) -> int:
         "skip": fastest["update_batch, skipped"],
     }
 
-    print(f"{n} samples at {args.rate:g} Hz, fastest of {args.rounds} interleaved rounds")
-    print(f"{'call':<32} {'µs/sample':>10} {'− batch':>9}")
-    for name, (_, kind) in runs.items():
-        overhead = fastest[name] - batch[kind]
-        print(f"{name:<32} {fastest[name]:10.2f} {overhead:9.2f}")
+    with report.results_section(args.results, "Online overhead", __file__, argv, __doc__):
+        print(f"{n} samples at {args.rate:g} Hz, fastest of {args.rounds} interleaved rounds")
+        if markdown:
+            print("\n| call | µs/sample | − batch |\n|---|---:|---:|")
+        else:
+            print(f"{'call':<32} {'µs/sample':>10} {'− batch':>9}")
+        for name, (_, kind) in runs.items():
+            overhead = fastest[name] - batch[kind]
+            if markdown:
+                print(f"| {name} | {fastest[name]:.2f} | {overhead:.2f} |")
+            else:
+                print(f"{name:<32} {fastest[name]:10.2f} {overhead:9.2f}")
     return 0
 
 

@@ -1,6 +1,7 @@
 """The service's speed: live latency, replay throughput beside pymavlink, Rerun's cost.
 
     .venv/bin/python tools/service_bench.py [--seconds 30] [--rate 1000] [--replay-seconds 300]
+                                            [--only live|replay|rerun] [--results [FILE]]
 
 Live: ``mavest run udpin:…`` (a separate process, as users run it) is fed a simulated
 flight over loopback UDP at ``--rate`` (RAW_IMU and SIMSTATE per sample, VFR_HUD and
@@ -52,6 +53,8 @@ busy machine does not disturb: 2 s and ``--instruction-seconds`` flights with an
 without ``--rrd``, the cost per simulated second taken between the two lengths so that
 start-up (imports, the numba cache, opening the recording) falls out; the longer pair
 is run twice to show the count repeats. ``--only rerun`` (or live, replay) runs one part.
+``--results`` writes the printed tables as the Service section of docs/results.md (or
+FILE).
 """
 
 from __future__ import annotations
@@ -79,6 +82,7 @@ import numpy as np
 from pymavlink import mavutil
 
 import mavest
+from mavest.evaluation import report
 from mavest.mavlink.messages import MAVLink, time_boot_ms
 from mavest.service.process import MAVEST, ServiceProcess, free_port
 from mavest.sim.vehicle import AUTOPILOTS, TLOG_EPOCH_US, flight_records, write_flight_tlog
@@ -587,7 +591,7 @@ def rerun_instructions(seconds: float, workdir: Path, jobs: int) -> dict[str, fl
     return result
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="live stream length")
     parser.add_argument("--rate", type=float, default=1000.0, help="live IMU rate, Hz")
@@ -637,19 +641,23 @@ def main() -> int:
         action="append",
         help="run only this part (repeatable; default: all of them)",
     )
-    args = parser.parse_args()
+    report.add_results_option(parser)
+    args = parser.parse_args(argv)
     parts = args.only or list(PARTS)
-    if "live" in parts:
-        flight = prepare_flight(args.seconds, args.rate)
-        services = {"this checkout": ""}
-        if args.baseline:
-            services = {f"{args.baseline}": args.baseline, **services}
-        print_live(live_rounds(flight, services, args.live_rounds, args.realtime), args)
-        print_pipeline_cost(pipeline_cost(flight, services, args.live_rounds))
-        if args.sweep_rates:
-            rates = [float(r) for r in args.sweep_rates.split(",")]
-            print_sweep(rate_sweep(rates, args.sweep_seconds, args.realtime), args)
-    with tempfile.TemporaryDirectory() as workdir:
+    with (
+        report.results_section(args.results, "Service", __file__, argv, __doc__),
+        tempfile.TemporaryDirectory() as workdir,
+    ):
+        if "live" in parts:
+            flight = prepare_flight(args.seconds, args.rate)
+            services = {"this checkout": ""}
+            if args.baseline:
+                services = {f"{args.baseline}": args.baseline, **services}
+            print_live(live_rounds(flight, services, args.live_rounds, args.realtime), args)
+            print_pipeline_cost(pipeline_cost(flight, services, args.live_rounds))
+            if args.sweep_rates:
+                rates = [float(r) for r in args.sweep_rates.split(",")]
+                print_sweep(rate_sweep(rates, args.sweep_seconds, args.realtime), args)
         if "replay" in parts:
             replayed = replay_throughput(args.replay_seconds, Path(workdir), args.rounds)
             print_replay(replayed, args)
@@ -741,7 +749,7 @@ def _abba(services: dict[str, str], rounds: int) -> Iterator[tuple[str, str]]:
 
 def print_pipeline_cost(costs: dict[str, list[float]]) -> None:
     print("\nPipeline alone (Pipeline.on_bytes in process, no sockets): CPU per IMU sample")
-    print("| service | rounds (µs) | median |")
+    print("\n| service | rounds (µs) | median |")
     print("|---|---|---:|")
     for label, values in costs.items():
         rounds = ", ".join(f"{v:.0f}" for v in values)
@@ -767,7 +775,7 @@ def print_live(runs: dict[str, list[LiveRun]], args: argparse.Namespace) -> None
         + ("; service and sender at SCHED_FIFO" if args.realtime else "")
     )
     print(
-        "| service | run | sent | lost | latency p50 | p99 | p99.9 | max | sender late p99 "
+        "\n| service | run | sent | lost | latency p50 | p99 | p99.9 | max | sender late p99 "
         "| service CPU |"
     )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
@@ -795,7 +803,7 @@ def print_sweep(runs: list[LiveRun], args: argparse.Namespace) -> None:
         + ("; service and sender at SCHED_FIFO" if args.realtime else "")
     )
     print(
-        "| IMU rate | sent | lost | kept up | latency p50 | p99 | max | sender late p99 "
+        "\n| IMU rate | sent | lost | kept up | latency p50 | p99 | max | sender late p99 "
         "| service CPU |"
     )
     print("|---:|---:|---:|---|---:|---:|---:|---:|---:|")
@@ -808,10 +816,10 @@ def print_sweep(runs: list[LiveRun], args: argparse.Namespace) -> None:
         )
     best = highest_sustained(runs)
     if best is None:
-        print("highest rate without loss (and kept up): none of these")
+        print("\nhighest rate without loss (and kept up): none of these")
     else:
         print(
-            f"highest rate without loss (and kept up): {best.rate:g} Hz "
+            f"\nhighest rate without loss (and kept up): {best.rate:g} Hz "
             f"(p99 {best.percentile(99):.3f} ms)"
         )
 
@@ -822,7 +830,7 @@ def print_replay(replayed: dict[str, float], args: argparse.Namespace) -> None:
         f"\nReplay of a {args.replay_seconds:g} s 1 kHz tlog ({messages:.0f} messages, "
         f"{replayed['MB']:.1f} MB), wall s, medians of {args.rounds} interleaved rounds"
     )
-    print("| | wall s | messages/s | × pymavlink's parse (rounds' range) |")
+    print("\n| | wall s | messages/s | × pymavlink's parse (rounds' range) |")
     print("|---|---:|---:|---:|")
     print(
         f"| `mavest replay FILE --out-tlog OUT` (whole command) | "
@@ -854,7 +862,7 @@ def print_rerun(
         )
     )
     if counted is None:
-        print("| replay | CPU s | × without (rounds' range) |")
+        print("\n| replay | CPU s | × without (rounds' range) |")
         print("|---|---:|---:|")
         print(f"| without `--rrd` | {cost['without']:.2f} | 1 |")
         print(
@@ -862,7 +870,9 @@ def print_rerun(
             f"{cost['ratio']:.3f} ({cost['ratio min']:.3f}–{cost['ratio max']:.3f}) |"
         )
         return
-    print("| replay | CPU s | × without (rounds' range) | instructions / simulated s | × without |")
+    print(
+        "\n| replay | CPU s | × without (rounds' range) | instructions / simulated s | × without |"
+    )
     print("|---|---:|---:|---:|---:|")
     print(
         f"| without `--rrd` | {cost['without']:.2f} | 1 | "
@@ -879,7 +889,7 @@ def print_rerun(
         f"{seconds:g} s one twice"
     )
     print(
-        f"| replay | {SHORT_SECONDS:g} s flight | {seconds:g} s flight | again | repeat "
+        f"\n| replay | {SHORT_SECONDS:g} s flight | {seconds:g} s flight | again | repeat "
         f"difference | ({seconds:g} s − {SHORT_SECONDS:g} s) / {seconds - SHORT_SECONDS:g} s |"
     )
     print("|---|---:|---:|---:|---:|---:|")

@@ -1,6 +1,7 @@
 """Per-sample cost of mavest beside VQF (C++) and x-io Fusion (C), measured in one run.
 
-    .venv/bin/python tools/speed.py [--seconds 60] [--rate 200] [--rounds 7]
+    .venv/bin/python tools/speed.py [--seconds 60] [--rate 200 [400 1000 ...]] [--rounds 7]
+                                    [--markdown] [--results [FILE]]
 
 The same simulated flight (mavest.sim) goes through every filter, both ways a
 user would call it:
@@ -13,7 +14,8 @@ user would call it:
 Each figure is the median over ``--rounds`` interleaved rounds (the machine is
 shared and noisy; interleaving keeps the ratios fair), in µs per sample, with
 its ratio to VQF's figure of the same kind from the same run. Compilation is
-excluded (the numba cache is warmed first).
+excluded (the numba cache is warmed first). One table per ``--rate``;
+--results writes them (as Markdown) as the Speed section of docs/results.md (or FILE).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import numpy as np
 
 from mavest import Estimator, EstimatorConfig, estimate
 from mavest.estimator.config import STANDARD_GRAVITY
+from mavest.evaluation import report
 from mavest.sim import Motion, simulate
 
 
@@ -82,32 +85,23 @@ def _fusion_filter(rate: float) -> Callable[..., None] | None:
     return online
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
-    parser.add_argument("--seconds", type=float, default=60.0, help="flight length (s)")
-    parser.add_argument("--rate", type=float, default=200.0, help="IMU rate (Hz)")
-    parser.add_argument("--rounds", type=int, default=7, help="interleaved rounds")
-    args = parser.parse_args(argv)
-
-    data = simulate(args.seconds, args.rate, motion=Motion(), seed=1)
-    t, gyro, accel = data.t, data.gyro, data.accel
+def measure(seconds: float, rate: float, rounds: int) -> tuple[int, dict[str, tuple[str, float]]]:
+    """The flight's sample count, and per filter its kind and median µs per sample."""
+    data = simulate(seconds, rate, motion=Motion(), seed=1)
+    t = data.t
     # numpy arrays of float64, C-contiguous: what every filter gets
-    gyro = np.ascontiguousarray(gyro)
-    accel = np.ascontiguousarray(accel)
+    gyro = np.ascontiguousarray(data.gyro)
+    accel = np.ascontiguousarray(data.accel)
 
     contenders: dict[str, tuple[str, Callable[..., None]]] = {
         "mavest Estimator.update": ("online", _online_mavest),
         "mavest estimate()": ("batch", _batch_mavest),
     }
-    vqf = _vqf_filters(args.rate)
+    vqf = _vqf_filters(rate)
     if vqf is not None:
         contenders["VQF update (C++)"] = ("online", vqf[0])
         contenders["VQF updateBatch (C++)"] = ("batch", vqf[1])
-    fusion = _fusion_filter(args.rate)
+    fusion = _fusion_filter(rate)
     if fusion is not None:
         contenders["Fusion update (C)"] = ("online", fusion)
     if vqf is None or fusion is None:
@@ -117,26 +111,63 @@ def main(argv: list[str] | None = None) -> int:
     _batch_mavest(t[:100], gyro[:100], accel[:100])
 
     times: dict[str, list[float]] = {name: [] for name in contenders}
-    for _ in range(args.rounds):
+    for _ in range(rounds):
         for name, (_, run) in contenders.items():
             start = time.perf_counter()
             run(t, gyro, accel)
             times[name].append((time.perf_counter() - start) / t.shape[0] * 1e6)
+    return t.shape[0], {
+        name: (kind, statistics.median(times[name])) for name, (kind, _) in contenders.items()
+    }
 
-    median = {name: statistics.median(v) for name, v in times.items()}
+
+def print_table(
+    samples: int, rate: float, rounds: int, medians: dict[str, tuple[str, float]], markdown: bool
+) -> None:
+    """One rate's figures, each beside VQF's of the same kind."""
     reference = {
-        "online": median.get("VQF update (C++)"),
-        "batch": median.get("VQF updateBatch (C++)"),
+        kind: medians[name][1] if name in medians else None
+        for kind, name in (("online", "VQF update (C++)"), ("batch", "VQF updateBatch (C++)"))
     }
     print(
-        f"{t.shape[0]} samples at {args.rate:g} Hz, median of {args.rounds} interleaved rounds;"
-        f" mavest {EstimatorConfig().variant}"
+        f"{samples} samples at {rate:g} Hz, median of {rounds} interleaved rounds; "
+        f"mavest {EstimatorConfig().variant}"
     )
-    print(f"{'filter':<26} {'kind':<7} {'µs/sample':>10} {'× VQF':>7}")
-    for name, (kind, _) in contenders.items():
+    if markdown:
+        print("\n| filter | kind | µs/sample | × VQF |\n|---|---|---:|---:|")
+    else:
+        print(f"{'filter':<26} {'kind':<7} {'µs/sample':>10} {'× VQF':>7}")
+    for name, (kind, median) in medians.items():
         ref = reference[kind]
-        ratio = f"{median[name] / ref:7.2f}" if ref else "      –"
-        print(f"{name:<26} {kind:<7} {median[name]:10.2f} {ratio}")
+        ratio = f"{median / ref:.2f}" if ref else "–"
+        if markdown:
+            print(f"| {name} | {kind} | {median:.2f} | {ratio} |")
+        else:
+            print(f"{name:<26} {kind:<7} {median:10.2f} {ratio:>7}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("\n\n", 1)[1],
+    )
+    parser.add_argument("--seconds", type=float, default=60.0, help="flight length (s)")
+    parser.add_argument(
+        "--rate", type=float, nargs="+", default=[200.0], help="IMU rates (Hz), one table each"
+    )
+    parser.add_argument("--rounds", type=int, default=7, help="interleaved rounds")
+    parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    report.add_results_option(parser)
+    args = parser.parse_args(argv)
+    markdown = args.markdown or args.results is not None
+
+    measured = [(rate, *measure(args.seconds, rate, args.rounds)) for rate in args.rate]
+    with report.results_section(args.results, "Speed", __file__, argv, __doc__):
+        for i, (rate, samples, medians) in enumerate(measured):
+            if i:
+                print()
+            print_table(samples, rate, args.rounds, medians, markdown)
     return 0
 
 

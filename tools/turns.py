@@ -1,6 +1,7 @@
 """Tilt in turns: JSBSim flights replayed through the service with each acceleration aiding.
 
     .venv/bin/python tools/turns.py [--seconds 120] [--seeds 1 2 3 4] [--config FILE] [--markdown]
+                                    [--results [FILE]]
 
 Each seed is a Cessna 172 flight (90° heading changes every 25–35 s, 30° of
 bank, light turbulence) written as ArduPilot RAW_IMU at 400 Hz with GPS at
@@ -8,7 +9,8 @@ bank, light turbulence) written as ArduPilot RAW_IMU at 400 Hz with GPS at
 ``acceleration_aiding`` auto (GPS velocity), airspeed (ω × V) and off, the
 same samples in the same run, with the ArduPilot configuration
 (configs/ardupilot.toml; ``--config`` another). Roll, pitch and tilt RMS
-against the truth after the replay's settle time (10 s).
+against the truth after the replay's settle time (10 s). --results writes the table
+(as Markdown) as the Tilt in turns section of docs/results.md (or FILE).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from mavest.evaluation import report
 from mavest.service.config import ServiceConfig
 from mavest.service.runners import replay
 from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
@@ -40,7 +43,9 @@ def main(argv: list[str] | None = None) -> int:
         "--config", type=Path, default=ARDUPILOT_CONFIG, help="mavest configuration (TOML)"
     )
     parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    report.add_results_option(parser)
     args = parser.parse_args(argv)
+    markdown = args.markdown or args.results is not None
 
     base = ServiceConfig.from_toml(args.config)
     rows = []
@@ -59,12 +64,13 @@ def main(argv: list[str] | None = None) -> int:
 
     header = ["seed"] + [f"{mode}: roll / pitch / tilt (°)" for mode in MODES]
     lines = [" | ".join(header)]
-    if args.markdown:
+    if markdown:
         lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for seed, cells in rows:
         texts = [str(seed)] + [f"{r:.2f} / {p:.2f} / {t:.2f}" for r, p, t in cells]
-        lines.append("| " + " | ".join(texts) + " |" if args.markdown else " | ".join(texts))
-    print("\n".join(lines))
+        lines.append("| " + " | ".join(texts) + " |" if markdown else " | ".join(texts))
+    with report.results_section(args.results, "Tilt in turns", __file__, argv, __doc__):
+        print("\n".join(lines))
     return 0
 
 
