@@ -240,6 +240,10 @@ def _finish(report: RunReport) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     config = _load_config(args)
+    if args.out_only:
+        if not args.out:
+            raise UsageError("--out-only needs an --out link to send the estimates to")
+        config = config.replace(output={"reply_on_input": False})
     signing = _signing(args, config)
     device = args.connection if args.connection.startswith("/") else None
     _refuse_overlaps(
@@ -573,6 +577,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="CONNECTION",
         help="also send estimates here (repeatable)",
+    )
+    run.add_argument(
+        "--out-only",
+        action="store_true",
+        help="send estimates and HEARTBEAT only to the --out links, not back on CONNECTION "
+        "(which still carries the message-interval request and answers to requests)",
     )
     run.add_argument(
         "--baud",

@@ -504,3 +504,67 @@ def test_replay_into_a_served_viewer_serves_until_stopped(short_flight: Path) ->
     # the served viewer went with the replay
     with pytest.raises(OSError):
         socket.create_connection(("127.0.0.1", web), timeout=1).close()
+
+
+# ------------------------------------------------------------------ --out-only
+
+
+def test_out_only_keeps_the_estimates_off_the_vehicles_link() -> None:
+    port, out_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    out.bind(("127.0.0.1", out_port))
+    out.setblocking(False)
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle.setblocking(False)
+    encoder = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    config = ServiceConfig().replace(output={"reply_on_input": False})
+
+    def names(sock: socket.socket) -> list[str]:
+        parser = mavlink2.MAVLink(None)
+        found = []
+        while True:
+            try:
+                data = sock.recv(65536)
+            except BlockingIOError:
+                return found
+            found += [m.get_type() for m in parser.parse_buffer(data) or []]
+
+    async def scenario() -> tuple[list[str], list[str]]:
+        stop, ready = asyncio.Event(), asyncio.Event()
+        service = asyncio.create_task(
+            run_live(
+                f"udpin:127.0.0.1:{port}",
+                config,
+                (f"udpout:127.0.0.1:{out_port}",),
+                stop=stop,
+                ready=ready,
+                status_period=0,
+            )
+        )
+        await asyncio.wait_for(ready.wait(), 120)
+        heard_by_vehicle: list[str] = []
+        heard_out: list[str] = []
+        for i in range(300):  # 3 s of RAW_IMU at 100 Hz, level, at rest
+            packets = encoder.raw_imu_encode(i * 10_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0).pack(
+                encoder
+            )
+            if i % 100 == 0:
+                packets += encoder.heartbeat_encode(2, 3, 0, 0, 0).pack(encoder)
+            vehicle.sendto(packets, ("127.0.0.1", port))
+            await asyncio.sleep(0.01)
+            heard_by_vehicle += names(vehicle)
+            heard_out += names(out)
+        stop.set()
+        await service
+        return heard_by_vehicle + names(vehicle), heard_out + names(out)
+
+    heard_by_vehicle, heard_out = asyncio.run(scenario())
+    vehicle.close()
+    out.close()
+    assert heard_out.count("ATTITUDE") > 200 and "HEARTBEAT" in heard_out
+    assert "ATTITUDE" not in heard_by_vehicle and "HEARTBEAT" not in heard_by_vehicle
+
+
+def test_out_only_needs_an_out(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", "udpin:127.0.0.1:14550", "--out-only"]) == 2
+    _one_line(capsys.readouterr().err, "--out-only needs an --out")

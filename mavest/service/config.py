@@ -81,6 +81,9 @@ class OutputConfig:
     attitude_rate: float = 0.0  # Hz; 0: one ATTITUDE per IMU sample
     attitude_quaternion: bool = True  # also send ATTITUDE_QUATERNION
     heartbeat_rate: float = 1.0  # Hz; 0: none
+    # Send estimates and HEARTBEAT back on the link listened on (live); false: only to
+    # the --out links (a ground station on the vehicle's link then never sees them).
+    reply_on_input: bool = True
 
     def __post_init__(self) -> None:
         _require(0 <= self.system_id <= 255, "output.system_id must be 0–255 (0: the vehicle's)")

@@ -648,13 +648,19 @@ class Pipeline:
             )
         return encoder
 
-    def emit(self, *packets: bytes) -> None:
+    def emit(self, *packets: bytes, to_vehicle: bool = False) -> None:
         """Send packets of ours on every link, together (one datagram on UDP, which
         MAVLink receivers take as they take a byte stream: a send is the costliest
-        step of an answer), and record each."""
+        step of an answer), and record each.
+
+        The first link is the one listened on (the vehicle's); with
+        ``output.reply_on_input`` off, estimates and HEARTBEAT go to the others only,
+        and only what is meant for the vehicle or a requester (``to_vehicle``: the
+        message-interval request, answers to requests) goes back on it too."""
         self.sent += len(packets)
         data = packets[0] if len(packets) == 1 else b"".join(packets)
-        for link in self.links:
+        links = self.links if to_vehicle or self.config.output.reply_on_input else self.links[1:]
+        for link in links:
             link.send(data)
         if self.out_tlog is not None:
             for packet in packets:
@@ -724,7 +730,7 @@ class Pipeline:
                 component,
             )
         self._tell_request(system, component, name, target, answer)
-        self.emit(packet)
+        self.emit(packet, to_vehicle=True)
 
     def _tell_request(
         self, system: int, component: int, what: str, target: int, answer: str
@@ -788,7 +794,8 @@ class Pipeline:
             self.emit(
                 self._encoder(vehicle.system).set_message_interval(
                     vehicle.system, vehicle.component, message, rate, vehicle.mavlink1 is True
-                )
+                ),
+                to_vehicle=True,
             )
 
 
