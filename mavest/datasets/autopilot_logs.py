@@ -4,9 +4,10 @@ Two formats, one loader each, both returning an :class:`AutopilotLog` in mavest'
 conventions (docs/design.md#conventions): body FRD, world NED, quaternions (w, x, y, z)
 body → NED, SI units, float64, time in seconds from the first IMU sample.
 
-* ArduPilot dataflash (``.bin``), :func:`load_dataflash`, read with pymavlink's
-  DFReader. IMU samples from ``IMU``/``IMU2``/``IMU3`` (or ``IMU`` with an instance
-  field ``I`` in newer firmware): ``GyrX..Z`` rad/s, ``AccX..Z`` m/s², already rotated
+* ArduPilot dataflash (``.bin``), :func:`load_dataflash`, read in bulk by
+  :mod:`mavest.onboard.dataflash` (the values pymavlink's DFReader reads). IMU samples
+  from ``IMU``/``IMU2``/``IMU3`` (or ``IMU`` with an instance field ``I`` in newer
+  firmware): ``GyrX..Z`` rad/s, ``AccX..Z`` m/s², already rotated
   by ``AHRS_ORIENTATION`` into the vehicle's FRD frame and corrected by the stored
   accelerometer/gyro calibration. The reference is ``ATT`` (``Roll``, ``Pitch``,
   ``Yaw`` in degrees, ZYX Euler angles of the NED attitude). Where logged, ``EKF1``
@@ -38,8 +39,7 @@ dropped.
 The samples are kept as logged, calibration errors included: at rest log171's ``IMU``
 reads 9.59 m/s² (``IMU2`` 9.41, ``IMU3`` 9.13), PX4's real board 9.70 m/s².
 
-pymavlink is a runtime dependency; pyulog is a development extra, imported inside
-:func:`load_ulog`.
+pyulog is imported inside :func:`load_ulog`, where it is needed.
 """
 
 from __future__ import annotations
@@ -51,6 +51,8 @@ from typing import Any
 import numpy as np
 
 from mavest.datasets import require_data
+from mavest.onboard import OnboardLogError
+from mavest.onboard.dataflash import DataflashRecords, instances, logged_parameters, read_records
 from mavest.so3 import quats_from_euler_zyx
 
 __all__ = [
@@ -184,33 +186,22 @@ def _increasing(t: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 
-def _dataflash_time(message: dict[str, Any]) -> float:
+def _dataflash_seconds(records: DataflashRecords, name: str) -> np.ndarray:
     """Time since boot in s: ``TimeUS`` (µs) in newer firmware, ``TimeMS`` (ms) in older."""
-    if "TimeUS" in message:
-        return float(message["TimeUS"]) * 1e-6
-    if "TimeMS" in message:
-        return float(message["TimeMS"]) * 1e-3
-    raise ValueError(f"{message.get('mavpackettype')} message has neither TimeUS nor TimeMS")
+    table = records.table(name)
+    if "TimeUS" in records.columns(name):
+        return table["TimeUS"].astype(np.float64) * 1e-6
+    if "TimeMS" in records.columns(name):
+        return table["TimeMS"].astype(np.float64) * 1e-3
+    raise ValueError(f"{name} messages have neither TimeUS nor TimeMS")
 
 
-def _read_dataflash(path: Path) -> tuple[dict[str, list[dict[str, Any]]], dict[str, float]]:
-    """IMU*, ATT, EKF1, AHR2 messages (as dicts) and the last value of every parameter."""
-    from pymavlink import mavutil
-
-    types = [*_DATAFLASH_IMU_TYPES, "ATT", *_DATAFLASH_OTHER_REFERENCES, "PARM"]
-    messages: dict[str, list[dict[str, Any]]] = {name: [] for name in types if name != "PARM"}
-    parameters: dict[str, float] = {}
+def _read_dataflash(path: Path) -> DataflashRecords:
+    """The log's records, indexed (decoded per message type when asked for)."""
     try:
-        reader = mavutil.mavlink_connection(str(path))
-        while (message := reader.recv_match(type=types)) is not None:
-            kind = message.get_type()
-            if kind == "PARM":
-                parameters[message.Name] = float(message.Value)
-            else:
-                messages[kind].append(message.to_dict())
-    except Exception as error:  # DFReader raises assorted errors on a damaged file
-        raise ValueError(f"{path.name}: not a readable dataflash log ({error})") from error
-    return messages, parameters
+        return read_records(path)
+    except OnboardLogError as error:
+        raise ValueError(f"not a readable dataflash log ({error})") from error
 
 
 def load_dataflash(
@@ -241,30 +232,30 @@ def load_dataflash(
         # one spares a wrong file DFReader's byte-by-byte "bad header" complaints.
         if file.read(2) != _DATAFLASH_MESSAGE_HEADER:
             raise ValueError(f"{path.name}: not an ArduPilot dataflash log (bad first header)")
-    messages, parameters = _read_dataflash(path)
+    records = _read_dataflash(path)
+    parameters = logged_parameters(records)
 
     imu = [
-        m
-        for kind, instance in _DATAFLASH_IMU_TYPES.items()
-        for m in messages[kind]
-        if int(m.get("I", instance)) == imu_instance
+        (kind, rows)
+        for kind, instance, rows in instances(records, tuple(_DATAFLASH_IMU_TYPES))
+        if instance == imu_instance
     ]
     if not imu:
         raise ValueError(f"{path.name}: no samples of IMU instance {imu_instance}")
-    if not messages["ATT"]:
+    if not records.has("ATT"):
         raise ValueError(f"{path.name}: no ATT messages (the autopilot's attitude)")
-    imu_kind = imu[0]["mavpackettype"]
+    imu_kind, rows = imu[0]
 
-    imu_boot_t = np.array([_dataflash_time(m) for m in imu])
+    imu_boot_t = _dataflash_seconds(records, imu_kind)[rows]
     keep = _increasing(imu_boot_t)
-    imu = [m for m, k in zip(imu, keep, strict=True) if k]
+    rows = rows[keep]
     imu_boot_t = imu_boot_t[keep]
-    gyro = np.array([[m["GyrX"], m["GyrY"], m["GyrZ"]] for m in imu], dtype=np.float64)
-    accel = np.array([[m["AccX"], m["AccY"], m["AccZ"]] for m in imu], dtype=np.float64)
+    gyro = np.column_stack([records.column(imu_kind, f"Gyr{a}", rows) for a in "XYZ"])
+    accel = np.column_stack([records.column(imu_kind, f"Acc{a}", rows) for a in "XYZ"])
 
-    att_boot_t, euler_deg, att_dropped = _dataflash_angles(messages["ATT"])
+    att_boot_t, euler_deg, att_dropped = _dataflash_angles(records, "ATT")
     notes = [
-        f"IMU instance {imu_instance} ({imu_kind}), {len(imu)} samples",
+        f"IMU instance {imu_instance} ({imu_kind}), {len(rows)} samples",
         f"t = 0 is {imu_boot_t[0]:.3f} s after boot",
     ]
     if not np.all(keep) or att_dropped:
@@ -276,7 +267,7 @@ def load_dataflash(
     trimmed = apply_ahrs_trim and bool(np.any(trim_deg))
     suffix = " + AHRS_TRIM" if trimmed else ""
     if trimmed:
-        logged = ", ".join(["ATT", *(k for k in _DATAFLASH_OTHER_REFERENCES if messages[k])])
+        logged = ", ".join(["ATT", *(k for k in _DATAFLASH_OTHER_REFERENCES if records.has(k))])
         notes.append(
             f"AHRS_TRIM_X {trim_deg[0]:.2f}°, AHRS_TRIM_Y {trim_deg[1]:.2f}° "
             f"added to the roll, pitch of {logged}"
@@ -295,9 +286,9 @@ def load_dataflash(
 
     others = []
     for kind in _DATAFLASH_OTHER_REFERENCES:
-        if not messages[kind]:
+        if not records.has(kind):
             continue
-        boot_t, euler, _ = _dataflash_angles(messages[kind])
+        boot_t, euler, _ = _dataflash_angles(records, kind)
         waiting = _leading_uninitialised(euler)
         if waiting:
             notes.append(f"{kind}: first {waiting} rows dropped (no attitude yet: zero yaw)")
@@ -322,12 +313,12 @@ def load_dataflash(
     )
 
 
-def _dataflash_angles(messages: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray, int]:
+def _dataflash_angles(records: DataflashRecords, name: str) -> tuple[np.ndarray, np.ndarray, int]:
     """Boot times (s), (M, 3) Roll, Pitch, Yaw in degrees, and how many rows were dropped
     because their time did not increase."""
-    boot_t = np.array([_dataflash_time(m) for m in messages])
+    boot_t = _dataflash_seconds(records, name)
     keep = _increasing(boot_t)
-    euler_deg = np.array([[m["Roll"], m["Pitch"], m["Yaw"]] for m in messages], dtype=np.float64)
+    euler_deg = np.column_stack([records.column(name, c) for c in ("Roll", "Pitch", "Yaw")])
     return boot_t[keep], euler_deg[keep], int(np.sum(~keep))
 
 

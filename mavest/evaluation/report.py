@@ -42,6 +42,7 @@ SECTIONS = (
     "Online overhead",
     "Service",
     "Long runs",
+    "Onboard logs",
 )
 
 HEADER = """\
