@@ -1,9 +1,10 @@
 """The ``mavest`` command line.
 
-``run`` serves a live MAVLink link, ``replay`` runs a telemetry log through the
-same pipeline, ``sim`` is a simulated vehicle (JSBSim) that streams like a
-flight controller or writes a tlog with its true attitude, ``demo`` flies that
-vehicle through the whole pipeline and scores it, ``estimate`` reads a CSV.
+``run`` serves a live MAVLink link, ``replay`` runs a log (a telemetry log, or an
+autopilot's onboard log: ArduPilot .bin, PX4 .ulg) through the same pipeline,
+``sim`` is a simulated vehicle (JSBSim) that streams like a flight controller or
+writes a tlog with its true attitude, ``demo`` flies that vehicle through the whole
+pipeline and scores it, ``estimate`` reads a CSV.
 
 Exit codes, the same for every command:
 
@@ -38,8 +39,10 @@ from mavest.mavlink.links import LinkError
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import KEY_ENVIRONMENT_VARIABLE, Signing
 from mavest.mavlink.tlog import TlogError
+from mavest.onboard import OnboardLogError
 from mavest.paths import OutputPathError, check_outputs, write_atomically
 from mavest.service.config import ServiceConfig
+from mavest.service.estimates_table import EstimatesTableError, table_format
 from mavest.service.log_repeats import RepeatLimiter
 from mavest.service.runners import Outputs, RunReport, replay, run_live
 from mavest.service.signals import stop_on_signals
@@ -53,6 +56,7 @@ EXAMPLES = """examples:
   mavest run tcp:127.0.0.1:5760 --out udpout:127.0.0.1:14551 --rrd flight.rrd
   mavest run /dev/ttyACM0 --baud 921600 --config configs/ardupilot.toml
   mavest replay flight.tlog --out-tlog ours.tlog --rrd ours.rrd
+  mavest replay 00000042.BIN --rrd ours.rrd      an ArduPilot onboard log (or a PX4 .ulg)
   mavest sim udpout:127.0.0.1:14550 --rate 500   a simulated vehicle for `mavest run udpin:…`
 """
 
@@ -98,6 +102,15 @@ def _number(
         return value
 
     return parse
+
+
+def _table_path(text: str) -> Path:
+    """--estimates: a .csv or a .parquet file (Parquet only with pyarrow installed)."""
+    try:
+        table_format(text)
+    except EstimatesTableError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return Path(text)
 
 
 _POSITIVE = _number(0.0, above=True)
@@ -205,6 +218,7 @@ def _outputs(args: argparse.Namespace) -> Outputs:
     return Outputs(
         tlog=args.out_tlog,
         rrd=args.rrd,
+        estimates=args.estimates,
         rerun=mode,
         rerun_url=url or None,
         rerun_bind=args.rerun_bind,
@@ -225,7 +239,7 @@ def _signing(args: argparse.Namespace, config: ServiceConfig) -> Signing | None:
 
 
 def _output_paths(args: argparse.Namespace) -> dict[str, str | Path | None]:
-    return {"--out-tlog": args.out_tlog, "--rrd": args.rrd}
+    return {"--out-tlog": args.out_tlog, "--rrd": args.rrd, "--estimates": args.estimates}
 
 
 def _finish(report: RunReport) -> int:
@@ -298,7 +312,7 @@ def _replay(args: argparse.Namespace) -> int:
 
     try:
         report = asyncio.run(main())
-    except (TlogError, ViewerError, OutputPathError) as error:
+    except (TlogError, OnboardLogError, ViewerError, OutputPathError) as error:
         raise UsageError(str(error)) from None
     if report.lingered:  # the summary was printed before serving; Ctrl-C ended the serving
         return 0 if report.pipeline.streams else EXIT_NO_IMU
@@ -522,6 +536,16 @@ def _add_stream_options(parser: argparse.ArgumentParser) -> None:
         "ATTITUDE_QUATERNION, HEARTBEAT; live also its requests to the vehicle and answers "
         "to ground stations), in the MAVLink version of the vehicle",
     )
+    group.add_argument(
+        "--estimates",
+        type=_table_path,
+        metavar="FILE.csv|FILE.parquet",
+        help="write the estimates as a table, a row per IMU sample estimated: system, "
+        "component, message, instance, time_s (the vehicle's boot clock), qw qx qy qz "
+        "(body → NED), roll/pitch/yaw_deg and their 1σ (sigma_roll_deg, ...), "
+        "bias_x/y/z_dps, nis, accel_used, flags. Parquet needs pyarrow "
+        "(pip install 'mavest[parquet]')",
+    )
 
 
 def _add_signing_options(parser: argparse.ArgumentParser) -> None:
@@ -604,12 +628,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     rep = commands.add_parser(
         "replay",
-        help="run a telemetry log (.tlog) through the estimator",
-        description="Replay a tlog through the same pipeline as `run`: as fast as possible, "
+        help="run a log (.tlog, ArduPilot .bin, PX4 .ulg) through the estimator",
+        description="Replay a log through the same pipeline as `run`: as fast as possible, "
         "or paced with --speed. Prints a summary: samples, rate, gaps, rejected samples, and "
-        "accuracy against the log's own ATTITUDE (and SIMSTATE, a simulator's truth).",
+        "accuracy against the log's own ATTITUDE (and SIMSTATE, a simulator's truth). "
+        "The log is a telemetry log (.tlog) or an autopilot's onboard log, told apart by "
+        "content: an ArduPilot DataFlash log (.bin) or a PX4 ULog (.ulg), whose samples are "
+        "replayed as the MAVLink a vehicle would send with them: every IMU as HIGHRES_IMU "
+        "(--instance picks one), the autopilot's attitude as ATTITUDE, a simulator's truth "
+        "as SIMSTATE, GPS velocity, airspeed and COMPASS_DEC where the log has them. With "
+        "--out-tlog that MAVLink is written too, beside mavest's answers: a tlog of the "
+        "onboard log that any MAVLink tool reads.",
     )
-    rep.add_argument("tlog", type=Path, metavar="FILE.tlog")
+    rep.add_argument("tlog", type=Path, metavar="LOG", help="a .tlog, .bin or .ulg file")
     rep.add_argument(
         "--speed", type=_POSITIVE, help="pace the replay (1 = real time; default: fast)"
     )

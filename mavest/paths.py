@@ -61,12 +61,19 @@ def check_outputs(
         written[name] = identity
 
 
+def partial_path(path: str | Path) -> Path:
+    """Where a file is written before it is renamed to ``path`` (whole, at the end): a
+    hidden file beside it, so that the rename cannot cross file systems, named after
+    the process, so that two runs never write the same one."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{os.getpid()}.partial")
+
+
 def write_atomically(path: str | Path, data: bytes) -> None:
     """Write a whole file or nothing: a run stopped half-way leaves the old file (or
-    none), never a part. The temporary file is in the same folder, so the rename
-    cannot cross file systems."""
+    none), never a part (:func:`partial_path` until it is whole)."""
     path = Path(path)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    temporary = partial_path(path)
     try:
         with temporary.open("wb") as stream:
             stream.write(data)

@@ -549,8 +549,9 @@ def test_replay_of_a_damaged_tlog(
         ("empty.tlog", b"", "is empty"),
         ("random.tlog", random.Random(5).randbytes(50_000), "not a MAVLink telemetry log"),
         ("zeros.tlog", bytes(10_000), "not a MAVLink telemetry log"),
-        ("flight.bin", b"\xa3\x95\x80\x80" + random.Random(6).randbytes(5000), "not a MAVLink"),
-        ("log.ulg", b"ULog\x01\x12\x35" + bytes(5000), "not a MAVLink telemetry log"),
+        # onboard logs by their first bytes, with nothing to replay after them
+        ("flight.bin", b"\xa3\x95\x80\x80" + random.Random(6).randbytes(5000), "no IMU samples"),
+        ("log.ulg", b"ULog\x01\x12\x35" + bytes(5000), "no sensor_combined (IMU) samples"),
         ("folder.tlog", None, "is a directory"),
         ("missing/flight.tlog", None, "no such file"),
     ],

@@ -17,8 +17,11 @@ same work is done on whole runs of records in compiled loops:
   for samples that came so; CRC with the message's extra byte, the encoder's
   sequence numbers), and :func:`interleave` lays the
   input records and the answers out as the output tlog's records.
+* :func:`packets` packs any message of wire-format records, each with its own
+  sequence number (an onboard log's samples made MAVLink, :mod:`mavest.onboard.convert`).
 
-``tests/test_bulk.py`` checks each against pymavlink on the same bytes.
+``tests/test_bulk.py`` checks each against pymavlink on the same bytes
+(``tests/test_onboard_replay.py`` :func:`packets`, through the conversion).
 """
 
 from __future__ import annotations
@@ -334,17 +337,16 @@ def _pack(
     mavlink1_length: int,
     system: int,
     component: int,
-    first_seq: int,
-    seq_step: int,
+    seqs: np.ndarray,
     out: np.ndarray,
     out_length: np.ndarray,
 ) -> None:
     """Packets of these payloads, as :func:`mavest.mavlink.wire.pack` packs them: MAVLink 2
     (trailing zeros cut), or MAVLink 1 where ``mavlink1`` is set (the first
-    ``mavlink1_length`` bytes: the base fields)."""
+    ``mavlink1_length`` bytes: the base fields); row i's sequence number ``seqs[i]``."""
     for i in range(payloads.shape[0]):
         row = out[i]
-        seq = (first_seq + i * seq_step) & 0xFF
+        seq = seqs[i] & 0xFF
         if mavlink1[i]:
             length = mavlink1_length
             header = 6
@@ -423,7 +425,8 @@ def attitude_packets(
         attitude[name] = euler[:, k]
     for k, name in enumerate(("rollspeed", "pitchspeed", "yawspeed")):
         attitude[name] = rates[:, k]
-    first = _packed(attitude, _ATTITUDE, mavlink1, system, component, first_seq, step)
+    seqs = first_seq + step * np.arange(n, dtype=np.int64)
+    first = _packed(attitude, _ATTITUDE, mavlink1, system, component, seqs)
     if q is None:
         return first, None
     quaternion = np.zeros(n, dtype=ATTITUDE_QUATERNION_DTYPE)
@@ -432,10 +435,18 @@ def attitude_packets(
         quaternion[name] = q[:, k]
     for k, name in enumerate(("rollspeed", "pitchspeed", "yawspeed")):
         quaternion[name] = rates[:, k]
-    second = _packed(
-        quaternion, _ATTITUDE_QUATERNION, mavlink1, system, component, first_seq + 1, step
-    )
+    second = _packed(quaternion, _ATTITUDE_QUATERNION, mavlink1, system, component, seqs + 1)
     return first, second
+
+
+def packets(
+    payloads: np.ndarray, message_class: Any, seqs: np.ndarray, system: int, component: int
+) -> Packets:
+    """MAVLink 2 packets of ``payloads`` (records of :func:`wire_dtype` of ``message_class``)
+    from ``system``/``component``, row i with sequence number ``seqs[i]`` (mod 256): what
+    pymavlink packs for the same fields, byte for byte, for many messages at once."""
+    mavlink1 = np.zeros(payloads.shape[0], dtype=np.bool_)
+    return _packed(payloads, message_class, mavlink1, system, component, seqs)
 
 
 def _packed(
@@ -444,8 +455,7 @@ def _packed(
     mavlink1: np.ndarray,
     system: int,
     component: int,
-    seq: int,
-    step: int,
+    seqs: np.ndarray,
 ) -> Packets:
     raw = payloads.view(np.uint8).reshape(payloads.shape[0], payloads.dtype.itemsize)
     n, width = raw.shape
@@ -459,8 +469,7 @@ def _packed(
         wire.MAVLINK1_LENGTHS[message_class.id],
         system,
         component,
-        seq,
-        step,
+        np.ascontiguousarray(seqs, dtype=np.int64),
         out,
         length,
     )

@@ -819,7 +819,8 @@ class BulkFeed:
                     series.accel_used[index],
                     steps.flags[index],
                     steps.q[index],
-                    lambda i: series[int(index[i])],
+                    series,
+                    index,
                     records.stamp[rows],
                     steps.processing,
                 )

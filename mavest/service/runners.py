@@ -1,4 +1,8 @@
-"""Running the pipeline: live on MAVLink links, or replaying a tlog.
+"""Running the pipeline: live on MAVLink links, or replaying a log.
+
+A replayed log is a tlog, or an autopilot's onboard log (ArduPilot DataFlash, PX4
+ULog), chosen by content: an onboard log is decoded, its samples made MAVLink
+records (:mod:`mavest.onboard.convert`), and those replayed exactly as a tlog's.
 
 Both are asyncio coroutines. Live, bytes arrive through the links' protocol
 callbacks and timers send HEARTBEAT and the message-interval request; nothing
@@ -29,10 +33,13 @@ from mavest.mavlink.links import Link, make_link, parse_endpoint
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import Signing
 from mavest.mavlink.tlog import TlogReader, TlogRecord, TlogWriter, message_ids
+from mavest.onboard import LogDamage, OnboardLogError, detect, load
+from mavest.onboard.convert import to_tlog_bytes
 from mavest.paths import check_outputs
 from mavest.service import bulk
 from mavest.service.config import ServiceConfig
-from mavest.service.pipeline import Pipeline, Stream
+from mavest.service.estimates_table import EstimatesTable, EstimatesTableError, table_format
+from mavest.service.pipeline import EstimateSink, Pipeline, Stream
 from mavest.service.signals import stop_on_signals
 from mavest.viz.viewer import (
     DEFAULT_GRPC_PORT,
@@ -68,11 +75,17 @@ class Outputs:
 
     tlog: Path | None = None
     rrd: Path | None = None
+    estimates: Path | None = None  # the estimates table, .csv or .parquet
     rerun: str | None = None  # live viewer: "spawn", "connect" or "serve"
     rerun_url: str | None = None  # for "connect"
     rerun_bind: str = "127.0.0.1"  # for "spawn"/"serve": where the viewer listens
     rerun_port: int = DEFAULT_GRPC_PORT
     rerun_web_port: int = DEFAULT_WEB_PORT
+
+    def paths(self) -> dict[str, Path | None]:
+        """The files written, by the option that names each (for
+        :func:`~mavest.paths.check_outputs`)."""
+        return {"--out-tlog": self.tlog, "--rrd": self.rrd, "--estimates": self.estimates}
 
     def viewer_request(self) -> ViewerRequest:
         rrd = Path(self.rrd) if self.rrd is not None else None
@@ -97,6 +110,9 @@ class RunReport:
     interrupted: bool = False
     bad_records: int = 0
     skipped_bytes: int = 0
+    # what a bad record is: a tlog's packet, an onboard log's record
+    bad_record_kind: str = "packets"
+    dropped_samples: int = 0  # an onboard log's samples whose time repeated or went back
     outputs: Outputs = field(default_factory=Outputs)
     # an output file that stopped early (disk full, write error) → why
     output_errors: dict[Path, str] = field(default_factory=dict)
@@ -118,10 +134,12 @@ FILE_ONLY_FLUSH_PERIOD = 10.0
 
 
 class _Opened:
-    """The outputs of a run, open: the output tlog, the Rerun recording and its recorder.
+    """The outputs of a run, open: the output tlog, the Rerun recording and its recorder,
+    the estimates table.
 
     A file that cannot be written any more (a full disk) stops with one line in the
-    log and stays valid up to there; the run goes on without it.
+    log and stays valid up to there; the run goes on without it. A run that fails
+    (:meth:`abandon`) leaves no table: it appears whole, when the run ends.
     """
 
     def __init__(self, outputs: Outputs) -> None:
@@ -132,14 +150,18 @@ class _Opened:
             # module too (else the first stream would wait for it)
             import mavest.viz.blueprint  # noqa: F401
             from mavest.viz.recorder import RerunRecorder
+        if outputs.estimates is not None:
+            table_format(outputs.estimates)  # a wrong suffix, no pyarrow: before any file
         self.outputs = outputs
+        self.table: EstimatesTable | None = None
         self.tlog = TlogWriter(outputs.tlog) if outputs.tlog is not None else None
         self.viewer: Viewer | None = None
         self.recorder: RerunRecorder | None = None
         self._recorder_period = 0.0  # s between the recorder's batches (0: every flush)
         self._recorder_flushed = 0.0  # time.monotonic() of the last one
-        # the pipeline's estimate sinks: the recorder, until nothing takes the recording
-        self.sinks: list[RerunRecorder] = []
+        # the pipeline's estimate sinks: the recorder, until nothing takes the recording;
+        # the table
+        self.sinks: list[EstimateSink] = []
         if request.wanted:
             try:
                 self.viewer = Viewer(request)
@@ -157,13 +179,25 @@ class _Opened:
                 self._recorder_flushed = time.monotonic()
             self.recorder.on_new_stream.append(self.viewer.add_stream)
             self.sinks.append(self.recorder)
+        if outputs.estimates is not None:
+            try:
+                self.table = EstimatesTable(outputs.estimates)
+            except EstimatesTableError:
+                self.close()
+                raise
+            self.sinks.append(self.table)
+
+    @property
+    def _recording(self) -> bool:
+        """Whether the recorder takes estimates (until nothing takes the recording)."""
+        return self.recorder is not None and self.recorder in self.sinks
 
     def flush(self) -> None:
         if self.tlog is not None:
             self.tlog.flush()
         if (
             self.recorder is not None
-            and self.sinks
+            and self._recording
             and time.monotonic() - self._recorder_flushed >= self._recorder_period
         ):
             self.recorder.flush()
@@ -180,10 +214,13 @@ class _Opened:
         return self.viewer is not None and self.viewer.serving
 
     def flush_all(self) -> None:
-        """Everything buffered to its file or viewer now (the recorder's batches too)."""
+        """Everything buffered to its file or viewer now (the recorder's batches too); the
+        table whole under its name (a replay that ends and lingers: nothing more comes)."""
+        if self.table is not None:
+            self.table.close()
         if self.tlog is not None:
             self.tlog.flush()
-        if self.recorder is not None and self.sinks:
+        if self.recorder is not None and self._recording:
             self.recorder.flush()
             self._recorder_flushed = time.monotonic()
         if self.viewer is not None:
@@ -197,16 +234,23 @@ class _Opened:
 
     def _drop_idle_recorder(self) -> None:
         # nothing takes the recording any more: stop building it (memory, time)
-        if self.viewer is not None and not self.viewer.active:
-            self.sinks.clear()
+        if self.viewer is not None and not self.viewer.active and self._recording:
+            self.sinks.remove(self.recorder)
 
     def close(self) -> None:
         if self.tlog is not None:
             self.tlog.close()
-        if self.recorder is not None and self.sinks:
+        if self.recorder is not None and self._recording:
             self.recorder.close()
         if self.viewer is not None:
             self.viewer.close()
+        if self.table is not None:
+            self.table.close()
+
+    def abandon(self) -> None:
+        """The run failed: no table (:meth:`close` still closes the rest)."""
+        if self.table is not None:
+            self.table.discard()
 
     def errors(self) -> dict[Path, str]:
         """Output files that stopped early, and why."""
@@ -216,6 +260,8 @@ class _Opened:
         if self.viewer is not None and self.viewer.rrd_error is not None:
             assert self.outputs.rrd is not None
             errors[Path(self.outputs.rrd)] = self.viewer.rrd_error
+        if self.table is not None and self.table.error is not None:
+            errors[self.table.path] = self.table.error
         return errors
 
 
@@ -281,7 +327,9 @@ async def replay(
     fast: bool = True,
     linger: Callable[[RunReport], Awaitable[None]] | None = None,
 ) -> RunReport:
-    """Replay a tlog through the pipeline (:class:`~mavest.mavlink.tlog.TlogError` if unusable;
+    """Replay a log through the pipeline: a tlog, or an onboard log (DataFlash, ULog) by
+    content (:class:`~mavest.mavlink.tlog.TlogError`,
+    :class:`~mavest.onboard.OnboardLogError` if unusable;
     :class:`~mavest.paths.OutputPathError` for an output that is the log or another output).
 
     ``fast``: clean stretches of the file go through :class:`~mavest.service.bulk.BulkFeed`
@@ -292,16 +340,15 @@ async def replay(
     once it goes).
     """
     outputs = outputs or Outputs()
-    check_outputs(
-        {"the log being replayed": path}, {"--out-tlog": outputs.tlog, "--rrd": outputs.rrd}
-    )
-    reader = TlogReader.open(path, REPLAY_MESSAGES)
+    check_outputs({"the log being replayed": path}, outputs.paths())
+    source = _open_log(path, config)
+    reader = source.reader
     opened = _Opened(outputs)
     tlog = opened.tlog
     pipeline = Pipeline(config, out_tlog=tlog, sinks=opened.sinks)
     bar = _Progress(reader.size, enabled=progress)
     _settle_heap()
-    report = RunReport(pipeline, 0.0, source=str(path), outputs=outputs)
+    report = RunReport(pipeline, 0.0, source=source.label, outputs=outputs)
     heartbeat_period = 1.0 / config.output.heartbeat_rate if config.output.heartbeat_rate else 0.0
     heartbeat_us = int(heartbeat_period * 1e6)
     next_heartbeat_us = 0
@@ -330,7 +377,7 @@ async def replay(
                 if reader.stats.records % 256:
                     continue
             bar.update(reader.position, _estimated(pipeline))
-            _check_rates(pipeline)
+            _check_rates(pipeline, source.rate_advice)
             opened.check_space()
             if speed:
                 if first_us is None:
@@ -342,35 +389,96 @@ async def replay(
             if stop is not None and stop.is_set():
                 report.interrupted = True
                 break
-        _check_rates(pipeline)
+        _check_rates(pipeline, source.rate_advice)
         if linger is not None and opened.serving and not report.interrupted:
             if feed is not None:
                 feed.close()
                 feed = None
             bar.finish()
             opened.flush_all()
-            _fill_replay_report(report, reader, opened, start)
+            _fill_replay_report(report, source, opened, start)
             report.lingered = True
             await linger(report)
+    except Exception:
+        opened.abandon()  # (a stop, Ctrl-C, is no failure: the table keeps its rows)
+        raise
     finally:
         if feed is not None:
             feed.close()
         bar.finish()
         opened.close()
     if not report.lingered:
-        _fill_replay_report(report, reader, opened, start)
+        _fill_replay_report(report, source, opened, start)
     report.output_errors = opened.errors()
     return report
 
 
-def _fill_replay_report(
-    report: RunReport, reader: TlogReader, opened: _Opened, start: float
-) -> None:
+@dataclass(frozen=True)
+class _Source:
+    """A log opened for replay: its records as a tlog's, and what loading it found."""
+
+    reader: TlogReader
+    label: str  # the summary's name for it
+    damage: LogDamage  # an onboard log's, found while decoding it (a tlog's: the reader's)
+    bad_record_kind: str
+    loading: float  # seconds spent decoding and converting it (part of the replay's time)
+    rate_advice: str  # what to do about an IMU too slow to estimate from
+
+
+_ONBOARD_FORMATS = {"dataflash": "DataFlash log", "ulog": "ULog"}
+_ONBOARD_SUFFIXES = (".bin", ".ulg")
+
+
+def _open_log(path: str | Path, config: ServiceConfig) -> _Source:
+    """The log at ``path`` as tlog records: a tlog as it is (mapped, never read whole), an
+    onboard log decoded and converted in memory. The format is the content's; a file of
+    neither is refused in the terms of the name it has (.bin/.ulg, else tlog)."""
+    path = Path(path)
+    kind = None
+    if path.is_file():
+        with contextlib.suppress(OnboardLogError):  # unreadable: TlogReader.open says why
+            kind = detect(path)
+        if kind is None and path.suffix.lower() in _ONBOARD_SUFFIXES:
+            load(path)  # refuses it (OnboardLogError), in its own words
+    if kind is None:
+        reader = TlogReader.open(path, REPLAY_MESSAGES)
+        return _Source(reader, str(path), LogDamage(), "packets", 0.0, _RAISE_STREAM_RATE)
+    began = time.perf_counter()
+    onboard = load(path)
+    data = to_tlog_bytes(onboard)
+    if onboard.notes:  # one line: lines of one template are rate-limited (log_repeats)
+        log.info("%s: %s", path.name, "; ".join(onboard.notes))
+    if config.input.imu not in ("auto", "all", "HIGHRES_IMU"):
+        log.warning(
+            "%s: an onboard log's IMUs are replayed as HIGHRES_IMU (id: the IMU's instance); "
+            "--imu %s selects none of them",
+            path.name,
+            config.input.imu,
+        )
+    return _Source(
+        TlogReader(data, REPLAY_MESSAGES),
+        f"{path} ({onboard.autopilot} {_ONBOARD_FORMATS.get(onboard.format, onboard.format)})",
+        onboard.damage,
+        "records",
+        time.perf_counter() - began,
+        _RAISE_LOG_RATE,
+    )
+
+
+def _fill_replay_report(report: RunReport, source: _Source, opened: _Opened, start: float) -> None:
+    reader, damage = source.reader, source.damage
     report.output_errors = opened.errors()
-    report.elapsed = time.perf_counter() - start
+    report.elapsed = time.perf_counter() - start + source.loading
     report.records = reader.stats.records
-    report.bad_records = reader.stats.bad_crc
-    report.skipped_bytes = reader.stats.skipped_bytes + reader.stats.truncated_bytes
+    report.bad_records = reader.stats.bad_crc + damage.bad_records
+    report.skipped_bytes = (
+        reader.stats.skipped_bytes
+        + reader.stats.truncated_bytes
+        + damage.skipped_bytes
+        + damage.truncated_bytes
+    )
+    report.bad_record_kind = source.bad_record_kind
+    report.dropped_samples = damage.dropped_samples
 
 
 # Clean records indexed per scan: about 8 s of a 1 kHz log with its truth, so that a
@@ -433,7 +541,7 @@ async def run_live(
     ``signing``: sign what is sent and verify what is heard (MAVLink 2 signing).
     """
     outputs = outputs or Outputs()
-    check_outputs({}, {"--out-tlog": outputs.tlog, "--rrd": outputs.rrd})
+    check_outputs({}, outputs.paths())
     endpoints = [parse_endpoint(connection, baud)] + [
         parse_endpoint(c, baud) for c in out_connections
     ]
@@ -460,6 +568,9 @@ async def run_live(
         start = time.perf_counter()
         try:
             await _serve(pipeline, links, config, opened, status_period, ready, stopping, tasks)
+        except Exception:
+            opened.abandon()
+            raise
         finally:
             for task in tasks:
                 task.cancel()
@@ -590,7 +701,20 @@ def _no_imu_yet(pipeline: Pipeline, link: Link) -> None:
 LOW_IMU_RATE = 20.0
 
 
-def _check_rates(pipeline: Pipeline) -> None:
+# What to do about an IMU too slow to estimate from: a link's stream can be asked to go
+# faster; an onboard log holds what the autopilot logged.
+_RAISE_STREAM_RATE = (
+    "Raise the IMU stream rate (live: --request-rate 50, or ArduPilot's SRn_RAW_SENS); "
+    "the vehicle's onboard log holds the IMU at its full rate"
+)
+_RAISE_LOG_RATE = (
+    "This onboard log holds the IMU at that rate: raise the autopilot's IMU logging rate "
+    "for the next flight (ArduPilot: LOG_BITMASK's fast IMU logging; PX4: an SDLOG_PROFILE "
+    "with high-rate sensors)"
+)
+
+
+def _check_rates(pipeline: Pipeline, advice: str = _RAISE_STREAM_RATE) -> None:
     """Warn, once per stream, of an IMU stream too slow to estimate from."""
     for stream in pipeline.streams.values():
         stats = stream.stats
@@ -601,14 +725,13 @@ def _check_rates(pipeline: Pipeline) -> None:
             stream.rate_warned = True
             log.warning(
                 "%s: IMU at %.1f Hz is too slow for this estimate%s: attitude follows the "
-                "accelerometer alone and can be tens of degrees off while the vehicle moves. "
-                "Raise the IMU stream rate (live: --request-rate 50, or ArduPilot's "
-                "SRn_RAW_SENS); the vehicle's onboard log holds the IMU at its full rate",
+                "accelerometer alone and can be tens of degrees off while the vehicle moves. %s",
                 stream.key,
                 stream.rate,
                 f" ({stats.realigned} of {stats.estimated} samples came after a gap)"
                 if realigning
                 else "",
+                advice,
             )
 
 
@@ -655,10 +778,15 @@ def format_summary(report: RunReport) -> str:
         f"{report.source}{status}: {report.records} messages in {report.elapsed:.2f} s"
         f"{compiling}, {samples} IMU samples estimated ({rate / 1000:.1f} k samples/s)"
     )
-    if report.bad_records or report.skipped_bytes:
+    if report.bad_records or report.skipped_bytes or report.dropped_samples:
+        dropped = (
+            f", {report.dropped_samples} samples dropped (their time repeated or went back)"
+            if report.dropped_samples
+            else ""
+        )
         lines.append(
-            f"  damaged input: {report.bad_records} bad packets, "
-            f"{report.skipped_bytes} bytes skipped"
+            f"  damaged input: {report.bad_records} bad {report.bad_record_kind}, "
+            f"{report.skipped_bytes} bytes skipped{dropped}"
         )
     if not pipeline.streams:
         lines.append(
@@ -736,7 +864,11 @@ def format_summary(report: RunReport) -> str:
             " (signed)" if pipeline.signing is not None and pipeline.signing.sign_outgoing else ""
         )
         lines.append(f"  sent {pipeline.sent} messages{signed}")
-    for label, path in (("tlog", report.outputs.tlog), ("Rerun recording", report.outputs.rrd)):
+    for label, path in (
+        ("tlog", report.outputs.tlog),
+        ("Rerun recording", report.outputs.rrd),
+        ("estimates table", report.outputs.estimates),
+    ):
         if path is not None:
             error = report.output_errors.get(Path(path))
             stopped = f", stopped early: {error}" if error else ""

@@ -35,7 +35,6 @@ import functools
 import math
 import operator
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import chain
 from typing import Any
@@ -46,6 +45,7 @@ import rerun as rr
 from mavest import so3
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.metrics import wrap_angles
+from mavest.service.estimates_table import euler_sigmas
 
 VEHICLE_TIME = "vehicle_time"
 RECEIVE_TIME = "receive_time"
@@ -68,31 +68,6 @@ BODY_OFFSETS = {"mavest": (0.0, 0.0, 0.0), "autopilot": (0.0, 3.0, 0.0), "truth"
 def stream_root(key: Any) -> str:
     """The entity path under which one IMU stream's recording lives."""
     return f"vehicle_{key.system}_{key.component}/{key.message.lower()}_{key.instance}"
-
-
-def euler_sigmas(euler: np.ndarray, cov_attitude: np.ndarray) -> np.ndarray:
-    """(N, 3) 1σ of roll, pitch, yaw from (N, 3, 3) covariances of the world-frame error.
-
-    A world-frame rotation δθ changes the ZYX angles by E⁻¹ δθ, where the columns
-    of E are the axes each angle turns about, in the world frame:
-    roll about Rz(ψ)Ry(θ)x̂, pitch about Rz(ψ)ŷ, yaw about ẑ.
-    """
-    roll, pitch, yaw = euler[:, 0], euler[:, 1], euler[:, 2]
-    del roll
-    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
-    n = len(euler)
-    E = np.zeros((n, 3, 3))
-    E[:, :, 0] = np.column_stack([cy * cp, sy * cp, -sp])
-    E[:, :, 1] = np.column_stack([-sy, cy, np.zeros(n)])
-    E[:, 2, 2] = 1.0
-    # near ±90° pitch roll and yaw are not separable: their σ is unbounded
-    safe = np.abs(cp) > 1e-6
-    out = np.full((n, 3), np.inf)
-    if np.any(safe):
-        inverse = np.linalg.inv(E[safe])
-        cov = inverse @ cov_attitude[safe] @ np.transpose(inverse, (0, 2, 1))
-        out[safe] = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
-    return out
 
 
 # What the recorder keeps of a sample until its batch is sent: a row of floats (vehicle
@@ -180,6 +155,7 @@ class _References:
 class _StreamBuffer:
     root: str
     slots: _Slots  # of our estimates
+    error: str  # the estimator's error side: the frame of its attitude covariance
     rows: list[tuple[float, ...]] = field(default_factory=list)  # < _BLOCK rows, as tuples
     blocks: list[np.ndarray] = field(default_factory=list)  # the batch's rows, packed
     packed: int = 0  # rows in blocks
@@ -242,7 +218,9 @@ class RerunRecorder:
     def _buffer(self, stream: Any) -> _StreamBuffer:
         buffer = self._streams.get(stream.key)
         if buffer is None:
-            buffer = _StreamBuffer(stream_root(stream.key), self._slots())
+            buffer = _StreamBuffer(
+                stream_root(stream.key), self._slots(), stream.estimator.config.error
+            )
             self._streams[stream.key] = buffer
             self._log_static(buffer.root)
             for callback in self.on_new_stream:
@@ -298,14 +276,16 @@ class RerunRecorder:
         accel_used: np.ndarray,
         flags: np.ndarray,
         q: np.ndarray,
-        estimate_at: Callable[[int], Any],
+        series: Any,
+        index: np.ndarray,
         receive_us: np.ndarray,
         processing_s: float,
     ) -> None:
         """Many estimates of one stream, in order (the replay's fast path): as
-        :meth:`on_estimate` for each. ``estimate_at(i)`` gives the i-th one's Estimate
-        (asked only for those that start a slow_rate slot); ``processing_s`` is the time
-        per sample, the batch's divided among its samples."""
+        :meth:`on_estimate` for each. The i-th is ``series[index[i]]`` (of an
+        :class:`~mavest.estimator.EstimateSeries`; made into an Estimate only for those
+        that start a slow_rate slot); ``processing_s`` is the time per sample, the
+        batch's divided among its samples."""
         n = t.shape[0]
         if not n:
             return
@@ -316,7 +296,7 @@ class RerunRecorder:
             buffer.rows.clear()
         starts_slow, starts_pose = buffer.slots.advance_many(t)
         first = buffer.packed
-        buffer.slow.extend((first + i, estimate_at(i)) for i in np.flatnonzero(starts_slow))
+        buffer.slow.extend((first + i, series[int(index[i])]) for i in np.flatnonzero(starts_slow))
         buffer.poses.extend((first + i, q[i]) for i in np.flatnonzero(starts_pose))
         block = np.empty((n, _FIELDS))
         block[:, _T] = t
@@ -487,7 +467,9 @@ class RerunRecorder:
             if len(slow):
                 slow_index = self._index(t[slow], rx[slow])
                 covariance = np.array([estimate.cov for estimate in estimates])
-                band = 3.0 * np.degrees(euler_sigmas(euler[slow], covariance[:, :3, :3]))
+                q = np.array([estimate.q for estimate in estimates])
+                sigma = euler_sigmas(q, covariance[:, :3, :3], buffer.error)
+                band = 3.0 * np.degrees(sigma)
                 for i, axis in enumerate(("roll", "pitch", "yaw")):
                     bounds = np.column_stack(
                         [angle[slow, i] + band[:, i], angle[slow, i] - band[:, i]]

@@ -1,0 +1,482 @@
+"""The estimates as a table: one row per estimated IMU sample, in CSV or Parquet.
+
+``mavest replay LOG --estimates FILE.csv`` (or ``FILE.parquet``; ``mavest run`` too)
+writes what the filter estimated for every sample it took, for pandas, polars or
+DuckDB. The columns (:data:`COLUMNS`), in this order:
+
+=================================================  =======  =================================
+column                                             type     meaning
+=================================================  =======  =================================
+``system``, ``component``                          int64    the vehicle's MAVLink ids
+``message``                                        string   the IMU message (``RAW_IMU``, …)
+``instance``                                       int64    the IMU's instance (0 if one)
+``time_s``                                         float64  the sample's vehicle time: the
+                                                            log's own boot clock, s
+``qw``, ``qx``, ``qy``, ``qz``                     float64  attitude, body → NED
+``roll_deg``, ``pitch_deg``, ``yaw_deg``           float64  ZYX angles, as ATTITUDE has them
+``sigma_roll_deg``, ``sigma_pitch_deg``,           float64  their 1σ (inf within 0.0001° of
+``sigma_yaw_deg``                                           ±90° pitch: roll and yaw are one)
+``bias_x_dps``, ``bias_y_dps``, ``bias_z_dps``     float64  gyro bias, °/s, body axes
+``nis``                                            float64  the last gravity update's NIS
+``accel_used``                                     bool     the accelerometer corrected tilt
+``flags``                                          int64    what the step did (StepFlags)
+=================================================  =======  =================================
+
+One file for all the streams a run estimates, a row each time one of them is
+estimated (in the order they were): the four stream columns pick one out. In
+Parquet ``message`` is dictionary-encoded (a category in pandas); in CSV
+``accel_used`` is ``true``/``false`` and floats are written exactly (the shortest
+text that reads back as the same number).
+
+The file appears whole or not at all: rows are written, a block at a time (memory
+stays flat however long the run), to a hidden file beside it (:func:`paths.partial_path`)
+renamed at the end. A run stopped by Ctrl-C keeps the rows it has, all complete; a
+run that fails on an error leaves no file. Parquet needs pyarrow
+(``pip install 'mavest[parquet]'``), CSV nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import importlib.util
+import io
+import logging
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mavest.paths import OutputPathError, partial_path
+
+log = logging.getLogger("mavest")
+
+STREAM_COLUMNS = ("system", "component", "message", "instance")
+COLUMNS: tuple[str, ...] = (
+    *STREAM_COLUMNS,
+    "time_s",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "roll_deg",
+    "pitch_deg",
+    "yaw_deg",
+    "sigma_roll_deg",
+    "sigma_pitch_deg",
+    "sigma_yaw_deg",
+    "bias_x_dps",
+    "bias_y_dps",
+    "bias_z_dps",
+    "nis",
+    "accel_used",
+    "flags",
+)
+FORMATS = {".csv": "csv", ".parquet": "parquet"}
+
+# Rows gathered before they are written: a Parquet row group each (large enough for
+# its columns to compress and scan well, ~10 MB buffered), CSV in pieces of
+# _CSV_PIECE rows (the text of a piece is made at once).
+BLOCK_ROWS = 32768
+_CSV_PIECE = 4096
+
+# Below this cos(pitch) (within ~0.0001° of ±90°) roll and yaw turn about one axis: their
+# σ is unbounded, and given as inf.
+_GIMBAL_LOCK_COS = 1e-6
+
+
+class EstimatesTableError(OutputPathError):
+    """The table cannot be written as asked: not .csv or .parquet, no pyarrow, no file."""
+
+
+def table_format(path: str | Path) -> str:
+    """``"csv"`` or ``"parquet"``, from the file's suffix (:class:`EstimatesTableError`
+    for another, or for Parquet without pyarrow)."""
+    path = Path(path)
+    kind = FORMATS.get(path.suffix.lower())
+    if kind is None:
+        raise EstimatesTableError(f"{path}: name a .csv or a .parquet file")
+    if kind == "parquet" and importlib.util.find_spec("pyarrow") is None:
+        raise EstimatesTableError(
+            f"{path}: Parquet needs pyarrow: pip install 'mavest[parquet]' (or write a .csv)"
+        )
+    return kind
+
+
+# ---------------------------------------------------------------------------- σ of the angles
+
+
+def euler_sigmas(q: np.ndarray, cov_attitude: np.ndarray, error: str = "left") -> np.ndarray:
+    """(N, 3) 1σ of roll, pitch and yaw (rad) at (N, 4) attitudes ``q`` (body → NED), from
+    the (N, 3, 3) covariances of their error δθ: in the world frame (``error="left"``:
+    R = Exp(δθ) R̄) or in the body frame (``"right"``: R = R̄ Exp(δθ)), as the estimator's
+    ``cov[:3, :3]`` is for its configured error (docs/design.md#state-and-error).
+
+    First order: σ² = diag(J P Jᵀ), J the Jacobian of the ZYX angles with respect to δθ.
+    A world-frame rotation δθ turns the angles by E⁻¹ δθ, the columns of E the axes
+    each angle turns about, in the world frame (roll about Rz(ψ)Ry(θ)x̂, pitch about
+    Rz(ψ)ŷ, yaw about ẑ)::
+
+        left:  J = [[cψ/cθ, sψ/cθ, 0], [−sψ, cψ, 0], [cψ tθ, sψ tθ, 1]]
+
+    and a body-frame one is the world-frame R̄ δθ (J R̄: the body-rate kinematics)::
+
+        right: J = [[1, sφ tθ, cφ tθ], [0, cφ, −sφ], [0, sφ/cθ, cφ/cθ]]
+
+    Both are written with R̄'s elements, without trigonometry: only products, sums,
+    quotients and square roots, each rounded exactly, so that a row's σ is the same
+    bits whatever rows it is computed with (a replay's fast path and its one-by-one
+    path write the same table).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    P = np.asarray(cov_attitude, dtype=np.float64)
+    n = q.shape[0]
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    J = np.zeros((n, 3, 3))
+    if error == "left":
+        r00 = 1.0 - 2.0 * (y * y + z * z)  # cψ cθ
+        r10 = 2.0 * (x * y + w * z)  # sψ cθ
+        r20 = 2.0 * (x * z - w * y)  # −sθ
+        c2 = r00 * r00 + r10 * r10  # cθ²
+        c = np.sqrt(c2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            J[:, 0, 0], J[:, 0, 1] = r00 / c2, r10 / c2
+            J[:, 1, 0], J[:, 1, 1] = -r10 / c, r00 / c
+            J[:, 2, 0], J[:, 2, 1], J[:, 2, 2] = -r20 * r00 / c2, -r20 * r10 / c2, 1.0
+    elif error == "right":
+        r20 = 2.0 * (x * z - w * y)  # −sθ
+        r21 = 2.0 * (y * z + w * x)  # cθ sφ
+        r22 = 1.0 - 2.0 * (x * x + y * y)  # cθ cφ
+        c2 = r21 * r21 + r22 * r22
+        c = np.sqrt(c2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = 1.0, -r20 * r21 / c2, -r20 * r22 / c2
+            J[:, 1, 1], J[:, 1, 2] = r22 / c, -r21 / c
+            J[:, 2, 1], J[:, 2, 2] = r21 / c2, r22 / c2
+    else:
+        raise ValueError(f"error must be 'left' or 'right', not {error!r}")
+    variance = np.zeros((n, 3))
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                variance[:, i] += J[:, i, j] * J[:, i, k] * P[:, j, k]
+    sigma = np.sqrt(np.maximum(variance, 0.0))
+    sigma[~(c > _GIMBAL_LOCK_COS)] = math.inf  # (NaN q too)
+    return sigma
+
+
+# ---------------------------------------------------------------------------- the sink
+
+
+class EstimatesTable:
+    """An estimate sink writing one row per estimate to a CSV or Parquet file.
+
+    A file that cannot be written any more (a full disk) stops with one line in the
+    log: a CSV keeps its rows up to there, all whole; a Parquet file, whose footer
+    could no longer be trusted, is not written. The run goes on without it
+    (:attr:`error` says what happened).
+    """
+
+    def __init__(self, path: str | Path, block_rows: int | None = None) -> None:
+        self.path = Path(path)
+        kind = table_format(self.path)
+        block_rows = block_rows or BLOCK_ROWS
+        self.rows = 0  # rows in the file
+        self.error: str | None = None  # why writing stopped, if it did
+        self._temporary = partial_path(self.path)
+        self._size = block_rows
+        self._t = np.empty(block_rows)
+        self._q = np.empty((block_rows, 4))
+        self._euler = np.empty((block_rows, 3))
+        self._bias = np.empty((block_rows, 3))
+        self._cov = np.empty((block_rows, 3, 3))
+        self._nis = np.empty(block_rows)
+        self._used = np.empty(block_rows, dtype=bool)
+        self._flags = np.empty(block_rows, dtype=np.int64)
+        self._stream = np.empty(block_rows, dtype=np.int64)  # index into _keys
+        self._n = 0  # rows buffered
+        self._indices: dict[Any, int] = {}  # stream key → its index
+        self._keys: list[tuple[int, int, str, int]] = []
+        self._errors: list[str] = []  # each stream's error side ("left", "right")
+        self._last_key: Any = None
+        self._last_index = 0
+        self._file: _CsvFile | _ParquetFile | None = None
+        try:
+            self._file = (
+                _CsvFile(self._temporary) if kind == "csv" else _ParquetFile(self._temporary)
+            )
+        except OSError as error:
+            self._temporary.unlink(missing_ok=True)
+            raise EstimatesTableError(
+                f"cannot write {self.path}: {error.strerror or error}"
+            ) from None
+
+    # ------------------------------------------------------------ sink interface
+
+    def _index(self, stream: Any) -> int:
+        key = stream.key
+        if key is self._last_key:
+            return self._last_index
+        index = self._indices.get(key)
+        if index is None:
+            index = self._indices[key] = len(self._keys)
+            self._keys.append((int(key.system), int(key.component), str(key.message), key.instance))
+            self._errors.append(stream.estimator.config.error)
+        self._last_key, self._last_index = key, index
+        return index
+
+    def on_estimate(
+        self,
+        stream: Any,
+        sample: Any,
+        estimate: Any,
+        euler: tuple[float, float, float],
+        receive_us: int,
+        processing_s: float,
+    ) -> None:
+        if self._file is None:
+            return
+        k = self._n
+        self._stream[k] = self._index(stream)
+        self._t[k] = estimate.t
+        self._q[k] = estimate.q
+        self._euler[k] = euler
+        self._bias[k] = estimate.bias
+        self._cov[k] = estimate.cov[:3, :3]
+        self._nis[k] = estimate.nis
+        self._used[k] = estimate.accel_used
+        self._flags[k] = estimate.flags
+        self._n = k + 1
+        if self._n == self._size:
+            self._write_block()
+
+    def on_estimates(
+        self,
+        stream: Any,
+        t: np.ndarray,
+        euler: np.ndarray,
+        gyro: np.ndarray,
+        accel: np.ndarray,
+        accel_used: np.ndarray,
+        flags: np.ndarray,
+        q: np.ndarray,
+        series: Any,
+        index: np.ndarray,
+        receive_us: np.ndarray,
+        processing_s: float,
+    ) -> None:
+        """Many estimates of one stream, in order (a replay's fast path), as
+        :meth:`on_estimate` for each: the i-th is ``series[index[i]]``."""
+        if self._file is None:
+            return
+        stream_index = self._index(stream)
+        n = t.shape[0]
+        done = 0
+        while done < n:
+            k = self._n
+            take = min(n - done, self._size - k)
+            part, rows = slice(done, done + take), slice(k, k + take)
+            where = index[part]
+            self._stream[rows] = stream_index
+            self._t[rows] = t[part]
+            self._q[rows] = q[part]
+            self._euler[rows] = euler[part]
+            self._bias[rows] = series.bias[where]
+            self._cov[rows] = series.cov[where, :3, :3]
+            self._nis[rows] = series.nis[where]
+            self._used[rows] = accel_used[part]
+            self._flags[rows] = flags[part]
+            self._n = k + take
+            done += take
+            if self._n == self._size:
+                self._write_block()
+
+    def on_reference(
+        self, stream: Any, source: str, t: float, euler: tuple, receive_us: int = 0
+    ) -> None:
+        """References (the autopilot's attitude, the truth) are not the table's."""
+
+    def on_references(
+        self, stream: Any, source: str, t: np.ndarray, euler: np.ndarray, receive_us: np.ndarray
+    ) -> None:
+        """As :meth:`on_reference`: nothing."""
+
+    # ------------------------------------------------------------ writing
+
+    def _columns(self) -> list[np.ndarray]:
+        """The buffered rows, a column each, in :data:`COLUMNS`' order (``message``: each
+        row's stream index, its name in ``_keys``)."""
+        n = self._n
+        stream = self._stream[:n]
+        keys = np.array([(s, c, i) for s, c, _, i in self._keys], dtype=np.int64)
+        q = self._q[:n]
+        sigma = np.empty((n, 3))
+        sides = np.array(self._errors)[stream]
+        for side in sorted(set(self._errors)):
+            rows = sides == side
+            sigma[rows] = euler_sigmas(q[rows], self._cov[:n][rows], side)
+        euler = np.degrees(self._euler[:n])
+        sigma = np.degrees(sigma)
+        bias = np.degrees(self._bias[:n])
+        return [
+            keys[stream, 0],
+            keys[stream, 1],
+            stream,
+            keys[stream, 2],
+            self._t[:n],
+            *(q[:, i] for i in range(4)),
+            *(euler[:, i] for i in range(3)),
+            *(sigma[:, i] for i in range(3)),
+            *(bias[:, i] for i in range(3)),
+            self._nis[:n],
+            self._used[:n],
+            self._flags[:n],
+        ]
+
+    def _write_block(self) -> None:
+        if self._file is None or not self._n:
+            self._n = 0
+            return
+        columns = self._columns()
+        names = [key[2] for key in self._keys]
+        try:
+            self.rows += self._file.write(columns, names)
+        except OSError as error:
+            self._stop(error)
+        self._n = 0
+
+    def _stop(self, error: OSError) -> None:
+        """Write no more: a CSV keeps its whole rows, a Parquet file goes."""
+        assert self._file is not None
+        self.error = f"cannot write {self.path}: {error.strerror or error}"
+        if isinstance(self._file, _CsvFile):
+            self.rows = self._file.rows
+            self._file.close_quietly()
+            self._file = None
+            self._publish()
+            log.error(
+                "%s; the table stops here with its first %d rows, whole (estimating on)",
+                self.error,
+                self.rows,
+            )
+        else:
+            self.discard()
+            log.error("%s; no table written (estimating on)", self.error)
+
+    def _publish(self) -> None:
+        """The file whole under its own name."""
+        try:
+            os.replace(self._temporary, self.path)
+        except OSError as error:
+            self._temporary.unlink(missing_ok=True)
+            self.error = f"cannot write {self.path}: {error.strerror or error}"
+            log.error("%s; no table written", self.error)
+
+    def close(self) -> None:
+        """Write what is buffered and give the file its name (a run that ends, or is
+        stopped: every row estimated is in it)."""
+        if self._file is None:
+            return
+        self._write_block()
+        file, self._file = self._file, None
+        if file is None:  # writing stopped just now: done
+            return
+        try:
+            file.close()
+        except OSError as error:
+            self._file = file
+            self._stop(error)
+            return
+        self._publish()
+
+    def discard(self) -> None:
+        """No file: the run failed (whatever is buffered or written goes)."""
+        file, self._file = self._file, None
+        if file is not None:
+            file.close_quietly()
+        self._temporary.unlink(missing_ok=True)
+        self._n = 0
+
+
+class _CsvFile:
+    """The CSV, written whole rows at a time; cut back to its last whole row on a failure."""
+
+    def __init__(self, path: Path) -> None:
+        # unbuffered: the buffering is ours, so that we know what reached the file
+        self._file = path.open("wb", buffering=0)
+        self.rows = 0  # whole rows on disk
+        self._on_disk = 0  # bytes of whole rows (and the header) on disk
+        self._write((",".join(COLUMNS) + "\n").encode(), 0)
+
+    def write(self, columns: list[np.ndarray], messages: list[str]) -> int:
+        """The rows of these columns (``message``: indices into ``messages``); how many."""
+        n = columns[0].shape[0]
+        names = np.array(messages, dtype=object)
+        used = np.array(["false", "true"], dtype=object)
+        at_message, at_used = COLUMNS.index("message"), COLUMNS.index("accel_used")
+        for start in range(0, n, _CSV_PIECE):
+            piece = slice(start, min(n, start + _CSV_PIECE))
+            values = [column[piece] for column in columns]
+            values[at_message] = names[values[at_message]]
+            values[at_used] = used[values[at_used].astype(np.intp)]
+            text = io.StringIO()
+            csv.writer(text, lineterminator="\n").writerows(
+                zip(*(column.tolist() for column in values), strict=True)
+            )
+            self._write(text.getvalue().encode(), piece.stop - piece.start)
+        return n
+
+    def _write(self, data: bytes, rows: int) -> None:
+        done = 0
+        try:
+            with memoryview(data) as view:
+                while done < len(data):
+                    done += self._file.write(view[done:]) or 0
+        except OSError:
+            with contextlib.suppress(OSError):  # a device (/dev/full) cannot be truncated
+                self._file.truncate(self._on_disk)
+            raise
+        self._on_disk += done
+        self.rows += rows
+
+    def close(self) -> None:
+        self._file.close()
+
+    def close_quietly(self) -> None:
+        with contextlib.suppress(OSError):
+            self._file.close()
+
+
+class _ParquetFile:
+    """The Parquet file: a row group per block; whole only once closed (its footer)."""
+
+    def __init__(self, path: Path) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        self._pa = pa
+        types = {"system": pa.int64(), "component": pa.int64(), "instance": pa.int64()}
+        types["message"] = pa.dictionary(pa.int32(), pa.string())
+        types["accel_used"] = pa.bool_()
+        types["flags"] = pa.int64()
+        self._schema = pa.schema([(name, types.get(name, pa.float64())) for name in COLUMNS])
+        self._writer = pq.ParquetWriter(path, self._schema)
+
+    def write(self, columns: list[np.ndarray], messages: list[str]) -> int:
+        pa = self._pa
+        arrays = [pa.array(column) for column in columns]
+        at_message = COLUMNS.index("message")
+        arrays[at_message] = pa.DictionaryArray.from_arrays(
+            pa.array(columns[at_message].astype(np.int32)), pa.array(messages, pa.string())
+        )
+        self._writer.write_table(pa.Table.from_arrays(arrays, schema=self._schema))
+        return columns[0].shape[0]
+
+    def close(self) -> None:
+        self._writer.close()
+
+    def close_quietly(self) -> None:
+        with contextlib.suppress(Exception):  # pyarrow's own errors, beside OSError
+            self._writer.close()
