@@ -650,7 +650,7 @@ def main(argv: list[str] | None = None) -> int:
     ):
         if "live" in parts:
             flight = prepare_flight(args.seconds, args.rate)
-            services = {"this checkout": ""}
+            services = {f"mavest {mavest.__version__}": ""}
             if args.baseline:
                 services = {f"{args.baseline}": args.baseline, **services}
             print_live(live_rounds(flight, services, args.live_rounds, args.realtime), args)
