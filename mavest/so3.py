@@ -559,3 +559,67 @@ def quats_from_euler_zyx(angles: np.ndarray) -> np.ndarray:
     )
     q[q[:, 0] < 0.0] *= -1.0  # w ≥ 0, as so3 normalises
     return q
+
+
+# Below this cos(pitch) (within ~0.0001° of ±90°) roll and yaw turn about one axis: their
+# σ is unbounded, and given as inf.
+_GIMBAL_LOCK_COS = 1e-6
+
+
+def euler_sigmas(q: np.ndarray, cov_attitude: np.ndarray, error: str = "left") -> np.ndarray:
+    """(N, 3) 1σ of roll, pitch and yaw (rad) at (N, 4) attitudes ``q`` (body → NED), from
+    the (N, 3, 3) covariances of their error δθ: in the world frame (``error="left"``:
+    R = Exp(δθ) R̄) or in the body frame (``"right"``: R = R̄ Exp(δθ)), as the estimator's
+    ``cov[:3, :3]`` is for its configured error (docs/design.md#state-and-error).
+
+    First order: σ² = diag(J P Jᵀ), J the Jacobian of the ZYX angles with respect to δθ.
+    A world-frame rotation δθ turns the angles by E⁻¹ δθ, the columns of E the axes
+    each angle turns about, in the world frame (roll about Rz(ψ)Ry(θ)x̂, pitch about
+    Rz(ψ)ŷ, yaw about ẑ)::
+
+        left:  J = [[cψ/cθ, sψ/cθ, 0], [−sψ, cψ, 0], [cψ tθ, sψ tθ, 1]]
+
+    and a body-frame one is the world-frame R̄ δθ (J R̄: the body-rate kinematics)::
+
+        right: J = [[1, sφ tθ, cφ tθ], [0, cφ, −sφ], [0, sφ/cθ, cφ/cθ]]
+
+    Both are written with R̄'s elements, without trigonometry: only products, sums,
+    quotients and square roots, each rounded exactly, so that a row's σ is the same
+    bits whatever rows it is computed with (a replay's fast path and its one-by-one
+    path write the same table).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    P = np.asarray(cov_attitude, dtype=np.float64)
+    n = q.shape[0]
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    J = np.zeros((n, 3, 3))
+    if error == "left":
+        r00 = 1.0 - 2.0 * (y * y + z * z)  # cψ cθ
+        r10 = 2.0 * (x * y + w * z)  # sψ cθ
+        r20 = 2.0 * (x * z - w * y)  # −sθ
+        c2 = r00 * r00 + r10 * r10  # cθ²
+        c = np.sqrt(c2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            J[:, 0, 0], J[:, 0, 1] = r00 / c2, r10 / c2
+            J[:, 1, 0], J[:, 1, 1] = -r10 / c, r00 / c
+            J[:, 2, 0], J[:, 2, 1], J[:, 2, 2] = -r20 * r00 / c2, -r20 * r10 / c2, 1.0
+    elif error == "right":
+        r20 = 2.0 * (x * z - w * y)  # −sθ
+        r21 = 2.0 * (y * z + w * x)  # cθ sφ
+        r22 = 1.0 - 2.0 * (x * x + y * y)  # cθ cφ
+        c2 = r21 * r21 + r22 * r22
+        c = np.sqrt(c2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = 1.0, -r20 * r21 / c2, -r20 * r22 / c2
+            J[:, 1, 1], J[:, 1, 2] = r22 / c, -r21 / c
+            J[:, 2, 1], J[:, 2, 2] = r21 / c2, r22 / c2
+    else:
+        raise ValueError(f"error must be 'left' or 'right', not {error!r}")
+    variance = np.zeros((n, 3))
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                variance[:, i] += J[:, i, j] * J[:, i, k] * P[:, j, k]
+    sigma = np.sqrt(np.maximum(variance, 0.0))
+    sigma[~(c > _GIMBAL_LOCK_COS)] = math.inf  # (NaN q too)
+    return sigma

@@ -30,12 +30,13 @@ from mavest.mavlink.messages import StreamKey, time_boot_ms
 from mavest.mavlink.tlog import TlogReader, message_ids
 from mavest.paths import OutputPathError, partial_path
 from mavest.service.config import ServiceConfig
-from mavest.service.estimates_table import COLUMNS, EstimatesTable, euler_sigmas
+from mavest.service.estimates_table import COLUMNS, EstimatesTable
 from mavest.service.pipeline import Pipeline
 from mavest.service.process import free_port
 from mavest.service.runners import Outputs, RunReport, replay, run_live
 from mavest.sim import simulate
 from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
+from mavest.so3 import euler_sigmas
 
 FORMATS = ("csv", "parquet")
 # small blocks, so that a replay writes several and the fast path's batches are split

@@ -45,7 +45,7 @@ import rerun as rr
 from mavest import so3
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.metrics import wrap_angles
-from mavest.service.estimates_table import euler_sigmas
+from mavest.so3 import euler_sigmas
 
 VEHICLE_TIME = "vehicle_time"
 RECEIVE_TIME = "receive_time"
