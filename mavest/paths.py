@@ -71,14 +71,21 @@ def partial_path(path: str | Path) -> Path:
 
 def write_atomically(path: str | Path, data: bytes) -> None:
     """Write a whole file or nothing: a run stopped half-way leaves the old file (or
-    none), never a part (:func:`partial_path` until it is whole)."""
+    none), never a part (:func:`partial_path` until it is whole). A file replaced keeps
+    its permissions; a new one gets what the umask gives any new file."""
     path = Path(path)
     temporary = partial_path(path)
+    try:
+        mode = path.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        mode = None
     try:
         with temporary.open("wb") as stream:
             stream.write(data)
             stream.flush()
             os.fsync(stream.fileno())
+        if mode is not None:
+            os.chmod(temporary, mode)
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)

@@ -22,12 +22,12 @@ import platform
 import re
 import shlex
 import sys
-import tempfile
 from collections.abc import Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
 
 import mavest
+from mavest.paths import write_atomically
 
 #: The document of a clone: tools run from one, next to ``docs/``.
 RESULTS = Path(mavest.__file__).resolve().parents[1] / "docs" / "results.md"
@@ -231,9 +231,8 @@ def write_section(
     section = render_section(title, body, command, description, day, machine)
     try:
         text = path.read_text(encoding="utf-8")
-        mode = path.stat().st_mode & 0o7777
     except FileNotFoundError:
-        text, mode = HEADER, None
+        text = HEADER
     name = anchor(title)
     span = _span(text, name)
     if span is not None:
@@ -243,24 +242,5 @@ def write_section(
         at, separator = _insertion_point(text, name)
         after = "\n" if at < len(text) else ""  # a blank line before the next section
         new = text[:at] + separator + section + after + text[at:]
-    _replace(path, new, mode)
-
-
-def _replace(path: Path, text: str, mode: int | None) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    if mode is None:  # a new file gets what the user's umask gives any new file
-        umask = os.umask(0)
-        os.umask(umask)
-        mode = 0o666 & ~umask
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8", newline="") as file:
-            file.write(text)
-            file.flush()
-            os.fsync(file.fileno())
-        os.chmod(temporary, mode)  # mkstemp makes it 0600
-        os.replace(temporary, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
-        raise
+    write_atomically(path, new.encode("utf-8"))

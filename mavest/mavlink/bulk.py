@@ -34,9 +34,9 @@ from mavest import so3
 from mavest._jit import inplace_exact_kernel
 from mavest.mavlink import wire
 from mavest.mavlink.messages import (
-    _HIGHRES_INERTIAL_BITS,
-    _HIGHRES_MAG_BITS,
     _INSTANCE_BY_NAME,
+    HIGHRES_INERTIAL_BITS,
+    HIGHRES_MAG_BITS,
     IMU_FORMATS,
     mavlink2,
 )
@@ -293,8 +293,8 @@ def imu_fields(name: str, payloads: np.ndarray) -> ImuFields:
         saturated = np.zeros(n, dtype=bool)
     if name == "HIGHRES_IMU":
         updated = payloads["fields_updated"].astype(np.int64)
-        inertial_fresh = updated & _HIGHRES_INERTIAL_BITS == _HIGHRES_INERTIAL_BITS
-        mag_fresh = updated & _HIGHRES_MAG_BITS == _HIGHRES_MAG_BITS
+        inertial_fresh = updated & HIGHRES_INERTIAL_BITS == HIGHRES_INERTIAL_BITS
+        mag_fresh = updated & HIGHRES_MAG_BITS == HIGHRES_MAG_BITS
         instance = payloads["id"].astype(np.int64)
     else:
         inertial_fresh = np.ones(n, dtype=bool)

@@ -51,7 +51,7 @@ IMU_MESSAGES: tuple[str, ...] = (
 _INSTANCE_BY_NAME = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
 
 # HIGHRES_IMU.fields_updated: gyro and accelerometer must all be fresh to be a sample.
-_HIGHRES_INERTIAL_BITS = (
+HIGHRES_INERTIAL_BITS = (
     mavlink2.HIGHRES_IMU_UPDATED_XACC
     | mavlink2.HIGHRES_IMU_UPDATED_YACC
     | mavlink2.HIGHRES_IMU_UPDATED_ZACC
@@ -59,7 +59,7 @@ _HIGHRES_INERTIAL_BITS = (
     | mavlink2.HIGHRES_IMU_UPDATED_YGYRO
     | mavlink2.HIGHRES_IMU_UPDATED_ZGYRO
 )
-_HIGHRES_MAG_BITS = (
+HIGHRES_MAG_BITS = (
     mavlink2.HIGHRES_IMU_UPDATED_XMAG
     | mavlink2.HIGHRES_IMU_UPDATED_YMAG
     | mavlink2.HIGHRES_IMU_UPDATED_ZMAG
@@ -167,9 +167,9 @@ def decode_imu(message: Any) -> ImuSample | None:
     mag_fresh = True
     if name == "HIGHRES_IMU":
         updated = message.fields_updated
-        if updated & _HIGHRES_INERTIAL_BITS != _HIGHRES_INERTIAL_BITS:
+        if updated & HIGHRES_INERTIAL_BITS != HIGHRES_INERTIAL_BITS:
             return None
-        mag_fresh = updated & _HIGHRES_MAG_BITS == _HIGHRES_MAG_BITS
+        mag_fresh = updated & HIGHRES_MAG_BITS == HIGHRES_MAG_BITS
         instance = message.id
     elif name == "RAW_IMU":
         instance = message.id  # a MAVLink 2 extension: 0 when sent as MAVLink 1

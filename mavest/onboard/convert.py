@@ -42,7 +42,7 @@ import numpy as np
 
 from mavest._jit import inplace_exact_kernel
 from mavest.mavlink import bulk
-from mavest.mavlink.messages import UNIT_TO_SI, mavlink2
+from mavest.mavlink.messages import HIGHRES_INERTIAL_BITS, HIGHRES_MAG_BITS, UNIT_TO_SI, mavlink2
 from mavest.onboard.model import OnboardLog, Series
 
 __all__ = ["RECORD_EPOCH_US", "to_tlog_bytes"]
@@ -57,19 +57,6 @@ _AUTOPILOTS = {
     "PX4": mavlink2.MAV_AUTOPILOT_PX4,
 }
 
-_INERTIAL_UPDATED = (
-    mavlink2.HIGHRES_IMU_UPDATED_XACC
-    | mavlink2.HIGHRES_IMU_UPDATED_YACC
-    | mavlink2.HIGHRES_IMU_UPDATED_ZACC
-    | mavlink2.HIGHRES_IMU_UPDATED_XGYRO
-    | mavlink2.HIGHRES_IMU_UPDATED_YGYRO
-    | mavlink2.HIGHRES_IMU_UPDATED_ZGYRO
-)
-_MAG_UPDATED = (
-    mavlink2.HIGHRES_IMU_UPDATED_XMAG
-    | mavlink2.HIGHRES_IMU_UPDATED_YMAG
-    | mavlink2.HIGHRES_IMU_UPDATED_ZMAG
-)
 _GAUSS_PER_MICROTESLA = 1.0 / UNIT_TO_SI["gauss"]  # the unit HIGHRES_IMU's mag fields are in
 _UINT16_UNKNOWN = 0xFFFF  # GPS_RAW_INT's eph, epv, vel, cog; GLOBAL_POSITION_INT's hdg
 _INT16_LIMIT = 32767
@@ -193,7 +180,7 @@ def _highres_imu(log: OnboardLog, stream: Any) -> np.ndarray:
     for k, axis in enumerate("xyz"):
         p[f"{axis}acc"] = stream.accel[:, k]
         p[f"{axis}gyro"] = stream.gyro[:, k]
-    updated = np.full(n, _INERTIAL_UPDATED, dtype=np.int64)
+    updated = np.full(n, HIGHRES_INERTIAL_BITS, dtype=np.int64)
     mag = _mag_for(log, stream.instance)
     field = np.full((n, 3), np.nan)
     if mag is not None and len(mag.t_us):
@@ -202,7 +189,7 @@ def _highres_imu(log: OnboardLog, stream: Any) -> np.ndarray:
         field[known] = mag.values[latest[known]] * _GAUSS_PER_MICROTESLA
         # fresh: the first IMU sample that sees this field sample
         previous = np.concatenate(([-1], latest[:-1]))
-        updated[known & (latest != previous)] |= _MAG_UPDATED
+        updated[known & (latest != previous)] |= HIGHRES_MAG_BITS
     for k, axis in enumerate("xyz"):
         p[f"{axis}mag"] = field[:, k]
     p["fields_updated"] = updated
