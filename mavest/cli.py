@@ -46,6 +46,7 @@ from mavest.service.estimates_table import EstimatesTableError, table_format
 from mavest.service.log_repeats import RepeatLimiter
 from mavest.service.runners import Outputs, RunReport, replay, run_live
 from mavest.service.signals import stop_on_signals
+from mavest.sim.flight import SimulatorMissingError
 from mavest.viz.viewer import VIEWER_MODES, ViewerError
 
 log = logging.getLogger("mavest")
@@ -325,6 +326,13 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _sim(args: argparse.Namespace) -> int:
+    try:
+        return _simulate(args)
+    except SimulatorMissingError as error:
+        raise UsageError(str(error)) from None
+
+
+def _simulate(args: argparse.Namespace) -> int:
     from mavest.sim.vehicle import AUTOPILOTS, stream_flight, write_flight_tlog
 
     _refuse_overlaps({}, {"--tlog": args.tlog, "--report": args.report})
@@ -367,7 +375,12 @@ def _demo(args: argparse.Namespace) -> int:
         "bias and quantisation, replayed through mavest.\n"
     )
     start = time.perf_counter()
-    print(write_flight_tlog(flight, args.seconds, args.rate, AUTOPILOTS["ardupilot"], args.seed))
+    try:
+        autopilot = AUTOPILOTS["ardupilot"]
+        made = write_flight_tlog(flight, args.seconds, args.rate, autopilot, args.seed)
+    except SimulatorMissingError as error:
+        raise UsageError(str(error)) from None
+    print(made)
     print(f"  ({time.perf_counter() - start:.1f} s)\n")
     config = _load_config(args)
     report = asyncio.run(replay(flight, config, outputs, progress=False))

@@ -9,6 +9,7 @@ import logging
 import math
 import socket
 import subprocess
+import sys
 import time
 import urllib.request
 from collections.abc import Iterator
@@ -568,3 +569,19 @@ def test_out_only_keeps_the_estimates_off_the_vehicles_link() -> None:
 def test_out_only_needs_an_out(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", "udpin:127.0.0.1:14550", "--out-only"]) == 2
     _one_line(capsys.readouterr().err, "--out-only needs an --out")
+
+
+@pytest.mark.parametrize("command", [["sim", "--tlog", "{dir}/f.tlog", "--seconds", "1"], ["demo"]])
+def test_a_missing_simulator_names_the_extra(
+    command: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # JSBSim comes with the sim extra: without it, one line says how to get it
+    monkeypatch.setitem(sys.modules, "jsbsim", None)  # import fails as if not installed
+    monkeypatch.chdir(tmp_path)
+    argv = [part.format(dir=tmp_path) for part in command]
+    assert main(argv) == 2
+    _one_line(capsys.readouterr().err, "pip install 'mavest[sim]'")
+    assert not (tmp_path / "f.tlog").exists()

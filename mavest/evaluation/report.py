@@ -36,13 +36,16 @@ RESULTS = Path(mavest.__file__).resolve().parents[1] / "docs" / "results.md"
 #: section not named here goes after them.
 SECTIONS = (
     "Accuracy",
+    "Smoothing",
     "Consistency",
+    "Covariance on real data",
     "Tilt in turns",
     "Speed",
     "Online overhead",
     "Service",
     "Long runs",
     "Onboard logs",
+    "Fleet",
 )
 
 HEADER = """\

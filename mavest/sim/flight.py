@@ -163,6 +163,10 @@ def _flight_from_rows(rate: float, t: np.ndarray, rows: np.ndarray, setpoint: np
     )
 
 
+class SimulatorMissingError(RuntimeError):
+    """JSBSim is not installed (it comes with the ``sim`` extra)."""
+
+
 class FlightModel:
     """A JSBSim flight stepped on demand: the streaming form of ``fly``.
 
@@ -179,7 +183,12 @@ class FlightModel:
     """
 
     def __init__(self, rate: float = 1000.0, seed: int = 0, plan: FlightPlan | None = None) -> None:
-        import jsbsim  # optional dependency, imported only when a flight is made
+        try:  # the sim extra: only flights need it, so it is imported when one is made
+            import jsbsim
+        except ImportError:
+            raise SimulatorMissingError(
+                "the simulated vehicle needs JSBSim: pip install 'mavest[sim]'"
+            ) from None
 
         if not (math.isfinite(rate) and rate > 0.0):
             raise ValueError(f"rate must be a positive number of Hz, got {rate}")

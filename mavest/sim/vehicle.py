@@ -20,6 +20,7 @@ samples since the last one, the way an autopilot filters before it decimates.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import logging
 import math
@@ -254,8 +255,11 @@ def write_flight_tlog(
 ) -> str:
     """Write a simulated flight to ``path``; return a line describing it."""
     described: list[str] = []
+    records = flight_records(seconds, rate, autopilot, seed, errors, described)
+    # the first record builds the flight model: a simulator that cannot start leaves no file
+    first = next(records, None)
     with TlogWriter(path) as tlog:
-        for stamp, packet in flight_records(seconds, rate, autopilot, seed, errors, described):
+        for stamp, packet in itertools.chain([first] if first else [], records):
             tlog.write(stamp, packet)
     return f"wrote {path}: {described[0]}"
 
