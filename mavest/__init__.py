@@ -1,8 +1,9 @@
 """mavest: live attitude estimation for MAVLink vehicles.
 
 An error-state Kalman filter on SO(3) × R³ (attitude and gyro bias). The
-public entry points are :func:`estimate` (a whole recording) and
-:class:`Estimator` (one sample at a time).
+public entry points are :func:`estimate` (a whole recording),
+:class:`Estimator` (one sample at a time) and :func:`smooth` (a whole
+recording, each sample given all of it).
 
 They are loaded on first use (PEP 562): the filter brings numba with it, which
 takes seconds to import, and the ``mavest`` command must answer Ctrl-C (or
@@ -23,6 +24,7 @@ if TYPE_CHECKING:
         EstimatorConfig,
         StepFlags,
         estimate,
+        smooth,
     )
 
 __version__ = "0.1.0"
@@ -36,6 +38,7 @@ __all__ = [
     "StepFlags",
     "__version__",
     "estimate",
+    "smooth",
 ]
 
 

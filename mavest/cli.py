@@ -2,8 +2,9 @@
 
 ``run`` serves a live MAVLink link, ``replay`` runs a log (a telemetry log, or an
 autopilot's onboard log: ArduPilot .bin, PX4 .ulg) through the same pipeline,
-``sim`` is a simulated vehicle (JSBSim) that streams like a flight controller or
-writes a tlog with its true attitude, ``demo`` flies that vehicle through the whole
+``fleet`` replays many logs on Dask into one table (:mod:`mavest.fleet`), ``sim``
+is a simulated vehicle (JSBSim) that streams like a flight controller or writes a
+tlog with its true attitude, ``demo`` flies that vehicle through the whole
 pipeline and scores it, ``estimate`` reads a CSV.
 
 Exit codes, the same for every command:
@@ -11,7 +12,8 @@ Exit codes, the same for every command:
 - 0: done (``run`` stopped by Ctrl-C or SIGTERM is done);
 - 1: the input held no IMU stream to estimate from (``run`` and ``replay`` alike);
 - 2: a mistake in what was asked or an unusable input: one line, never a traceback;
-- 130: interrupted before the end (``replay``, ``sim --tlog``, ``demo``, ``estimate``);
+- 130: interrupted before the end (``replay``, ``fleet``, ``sim --tlog``, ``demo``,
+  ``estimate``);
   what was written so far is valid.
 """
 
@@ -58,6 +60,7 @@ EXAMPLES = """examples:
   mavest run /dev/ttyACM0 --baud 921600 --config configs/ardupilot.toml
   mavest replay flight.tlog --out-tlog ours.tlog --rrd ours.rrd
   mavest replay 00000042.BIN --rrd ours.rrd      an ArduPilot onboard log (or a PX4 .ulg)
+  mavest fleet logs/ --out fleet.parquet         every log in logs/ on Dask: one table
   mavest sim udpout:127.0.0.1:14550 --rate 500   a simulated vehicle for `mavest run udpin:…`
 """
 
@@ -309,6 +312,7 @@ def _replay(args: argparse.Namespace) -> int:
                 stop=stop,
                 fast=not args.one_by_one,
                 linger=serve_on,
+                smooth=args.smooth,
             )
 
     try:
@@ -318,6 +322,96 @@ def _replay(args: argparse.Namespace) -> int:
     if report.lingered:  # the summary was printed before serving; Ctrl-C ended the serving
         return 0 if report.pipeline.streams else EXIT_NO_IMU
     return _finish(report)
+
+
+# --------------------------------------------------------------------------
+# fleet
+# --------------------------------------------------------------------------
+
+
+def _fleet(args: argparse.Namespace) -> int:
+    try:
+        from mavest.fleet.cluster import FleetError, run_fleet
+    except ImportError:
+        raise UsageError("mavest fleet needs Dask: pip install 'mavest[fleet]'") from None
+    from mavest.fleet.inputs import FleetInputError, expand, local_paths, output_names
+    from mavest.fleet.rows import LogTask
+    from mavest.fleet.table import write_table
+
+    if args.scheduler is not None and args.workers is not None:
+        raise UsageError("--workers sizes the local cluster; --scheduler's has its own workers")
+    config = _load_config(args)
+    try:
+        logs, empty = expand(args.logs)
+    except FleetInputError as error:
+        raise UsageError(str(error)) from None
+    for line in empty:
+        log.warning("%s", line)
+    if not logs:
+        raise UsageError("no log to replay")
+    inputs: dict[str, str | Path | None] = {"the --config file": args.config}
+    inputs.update((f"the log {path}", path) for path in local_paths(logs))
+    tasks = [LogTask.of(name, config) for name in logs]
+    if args.out_dir is not None:  # (first: it makes the folder --out may be in)
+        tasks = _with_outputs(tasks, args.out_dir, args.out, inputs, output_names(logs))
+    _refuse_overlaps(inputs, {"--out": args.out})
+    workers = args.workers or len(os.sched_getaffinity(0))
+    try:
+        result = run_fleet(tasks, args.scheduler, workers, verbose=args.verbose)
+    except FleetError as error:
+        raise UsageError(str(error)) from None
+    try:
+        write_table(args.out, result.rows)
+    except OSError as error:
+        raise UsageError(f"cannot write {args.out}: {error.strerror or error}") from None
+    failed = [row for row in result.rows if row["status"] == "error"]
+    for row in failed:
+        message = row["error"]
+        log.warning("%s", message if row["path"] in message else f"{row['path']}: {message}")
+    REPEATS.report(log)
+    if result.interrupted:
+        print(
+            f"mavest: interrupted: wrote the {result.done} of {result.total} logs that "
+            f"finished to {args.out}",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    failed_logs = len({row["path"] for row in failed})
+    print(
+        f"{result.total} log{'s' if result.total != 1 else ''} replayed: "
+        f"{result.total - failed_logs} ok, {failed_logs} with an error (the table's error "
+        f"column); wrote {args.out}"
+    )
+    return 0
+
+
+def _with_outputs(
+    tasks: list[Any],
+    out_dir: Path,
+    table: Path,
+    inputs: dict[str, str | Path | None],
+    names: list[str],
+) -> list[Any]:
+    """The tasks with each log's recording and estimates table in ``out_dir`` (made if
+    missing), named after the log; refused if one is an input or the table."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UsageError(f"cannot create {out_dir}: {error.strerror}") from None
+    folder = os.path.realpath(out_dir)
+    # only the inputs in that folder can be one of its files (the check is per log)
+    near = {
+        name: path
+        for name, path in {**inputs, "the --out table": table}.items()
+        if path is not None and os.path.dirname(os.path.realpath(path)) == folder
+    }
+    planned = []
+    for task, name in zip(tasks, names, strict=True):
+        rrd = out_dir.absolute() / f"{name}.rrd"
+        estimates = out_dir.absolute() / f"{name}.estimates{table.suffix.lower()}"
+        _refuse_overlaps(near, {"--out-dir's recording": rrd, "--out-dir's table": estimates})
+        planned.append(dataclasses.replace(task, rrd=str(rrd), estimates=str(estimates)))
+    return planned
 
 
 # --------------------------------------------------------------------------
@@ -665,6 +759,13 @@ def build_parser() -> argparse.ArgumentParser:
         "compiled path, unless --speed paces the replay)",
     )
     rep.add_argument(
+        "--smooth",
+        action="store_true",
+        help="after the replay, smooth each stream (every sample's attitude given the whole "
+        "log) and put it beside the online estimate: in the summary (against the autopilot "
+        "and the truth), the --rrd recording and the --estimates table (smoothed_* columns)",
+    )
+    rep.add_argument(
         "--settle",
         type=_NON_NEGATIVE,
         metavar="S",
@@ -673,6 +774,76 @@ def build_parser() -> argparse.ArgumentParser:
     _add_stream_options(rep)
     _add_common(rep)
     rep.set_defaults(handler=_replay)
+
+    fleet = commands.add_parser(
+        "fleet",
+        help="replay many logs on Dask (here or on a cluster): one table, a row per log",
+        description="Replay every log given, as `mavest replay` does, on Dask: a local "
+        "cluster of worker processes, or an existing cluster (--scheduler). One table, a row "
+        "per log and IMU stream: status and error, vehicle, samples, duration, rate, gaps, "
+        "rejected samples, filter health events, tilt and heading RMS against the log's "
+        "ATTITUDE (and a simulator's truth), the filter's mean 1σ. A log that cannot be "
+        "replayed is a row with its error, never the end of the run; Ctrl-C writes the "
+        "table of the logs that finished.",
+    )
+    fleet.add_argument(
+        "logs",
+        nargs="+",
+        metavar="LOG",
+        help="a log, a folder (its .tlog, .bin and .ulg files, in sub-folders too), a glob "
+        "(expanded by mavest, sorted), or an fsspec URL of any of these (s3://bucket/logs/, "
+        "gs://…, file://…; the backend, e.g. s3fs, installed)",
+    )
+    fleet.add_argument(
+        "--out",
+        type=_table_path,
+        required=True,
+        metavar="TABLE.parquet|TABLE.csv",
+        help="the table (Parquet needs pyarrow)",
+    )
+    fleet.add_argument(
+        "--out-dir",
+        type=Path,
+        metavar="DIR",
+        help="also write each log's Rerun recording and estimates table here: NAME.rrd and "
+        "NAME.estimates.parquet (or .csv, as --out), NAME the log's (NAME-2 … for a name "
+        "taken already)",
+    )
+    fleet.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="an existing Dask cluster's scheduler, tcp://HOST:PORT (default: a local "
+        "cluster on this machine)",
+    )
+    fleet.add_argument(
+        "--workers",
+        type=_number(1, 4096, whole=True),
+        metavar="N",
+        help="worker processes of the local cluster (default: this machine's cores)",
+    )
+    stream = fleet.add_argument_group("streams (override the config file)")
+    stream.add_argument(
+        "--imu",
+        choices=("auto", "all", *IMU_MESSAGES),
+        help="IMU message to estimate from (default auto: the best one each vehicle sends)",
+    )
+    stream.add_argument(
+        "--instance",
+        type=_number(0, 255, whole=True),
+        metavar="N",
+        help="IMU instance (default: lowest)",
+    )
+    stream.add_argument(
+        "--system", type=_ID, metavar="ID", help="follow this vehicle only (default: all)"
+    )
+    stream.add_argument(
+        "--settle",
+        type=_NON_NEGATIVE,
+        metavar="S",
+        help="seconds before accuracy is scored (default 10)",
+    )
+    _add_common(fleet)
+    fleet.set_defaults(handler=_fleet)
 
     sim = commands.add_parser(
         "sim",

@@ -5,8 +5,8 @@ anything for writing, so that ``mavest replay f.tlog --out-tlog f.tlog`` (or the
 same through a symbolic or hard link) leaves ``f.tlog`` untouched instead of
 truncating the file it is reading. Two outputs on one path are refused as well
 (the file would be neither), and so is an output whose folder does not exist:
-mavest creates no folders a user did not ask for (``demo --output-dir`` is the
-one option that names a folder to make).
+mavest creates no folders a user did not ask for (``demo --output-dir`` and
+``fleet --out-dir`` are the options that name a folder to make).
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ import pytest
 import mavest
 from mavest import ConfigError, Estimator, EstimatorConfig, StepFlags, estimate
 from mavest.estimator import InputError
-from mavest.evaluation.consistency import SCENARIOS, chi2_band, monte_carlo
+from mavest.evaluation.consistency import SCENARIOS, chi2_band, monte_carlo, simulate_scenario
 from mavest.evaluation.metrics import rmse_deg
 from mavest.sim import Motion, simulate
 
@@ -233,6 +233,51 @@ def test_default_is_consistent_and_the_classic_filter_is_not(scenario: str) -> N
     # carried whole in S while consecutive samples share most of it
     assert 0.5 < default.nis < 2.5, default
     assert classic.anees > 2 * high, classic  # the exponential reset's heading-into-tilt trap
+
+
+ADAPTIVE = EstimatorConfig.from_toml(Path(__file__).resolve().parents[1] / "configs/adaptive.toml")
+
+
+@pytest.mark.parametrize("scenario", ["changing_motion", "large_tilt"])
+def test_the_measured_motion_level_keeps_the_filter_consistent(scenario: str) -> None:
+    """The velocity's level measured from the data: in band where the motion is not
+    the configured one (0.2, 3, then 0.5 m/s against 1.5) and from a 60° start (a tilt
+    error's gravity must not read as motion)."""
+    chosen = next(s for s in SCENARIOS if s.name == scenario)
+    runs = 8
+    (adaptive,) = monte_carlo([ADAPTIVE], chosen, runs)
+    low, high = chi2_band(6, runs * 4)
+    assert low < adaptive.anees < high, adaptive
+
+
+def test_sigma_follows_the_measured_motion_and_the_rate() -> None:
+    # calm (0.2 m/s), then aggressive (3 m/s), then calmer (0.5 m/s): the measured
+    # level makes σ follow; the fixed one keeps it where the configuration put it
+    scenario = next(s for s in SCENARIOS if s.name == "changing_motion")
+    data = simulate_scenario(scenario, ADAPTIVE, seed=3)
+    phases = [(data.t > a + 5.0) & (data.t < b) for a, b in ((0, 20), (20, 40), (40, 60))]
+
+    def tilt_sigma(config: EstimatorConfig) -> list[float]:
+        cov = estimate(data.t, data.gyro, data.accel, None, config).cov
+        tilt = np.sqrt(cov[:, 0, 0] + cov[:, 1, 1])
+        return [float(np.median(tilt[phase])) for phase in phases]
+
+    # (the first phase still holds the alignment's uncertainty: measured 1.74°, 2.55°, 1.27°)
+    calm, aggressive, calmer = tilt_sigma(ADAPTIVE)
+    assert aggressive > 1.3 * calm and aggressive > 1.6 * calmer
+    fixed = tilt_sigma(EstimatorConfig())  # (measured 3.21°, 2.91°, 2.65°)
+    assert max(fixed) < 1.3 * min(fixed) and fixed[1] < fixed[0]
+    # the rate's noise: a turn at 3 rad/s grows the attitude's variance by σ_s²|ω|²Δt
+    # more a sample than rest does (no update: the accelerometer is unknown)
+    config = EstimatorConfig(gyro_scale_noise_density=0.002, initial_bias_sigma=1e-9)
+    grown = []
+    for rate in (0.0, 3.0):
+        est = Estimator(config)
+        est.initialise(0.0, [1.0, 0.0, 0.0, 0.0], bias=[0, 0, 0], cov=1e-6 * np.eye(6))
+        before = est.cov[:3, :3].trace()
+        est.update(0.01, [rate, 0.0, 0.0], [np.nan] * 3)
+        grown.append(est.cov[:3, :3].trace() - before)
+    assert grown[1] - grown[0] == pytest.approx(3 * 0.002**2 * 3.0**2 * 0.01, rel=1e-6)
 
 
 def test_magnetometer_online_equals_batch_and_nan_rows_mean_none() -> None:

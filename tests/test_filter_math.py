@@ -390,6 +390,8 @@ def _predict_and_absorb(state, coefficients, gyro, accel, dt):
 # the process noise as near zero as the config allows
 _NO_NOISE = dict(
     gyro_noise_density=1e-12,
+    gyro_scale_noise_density=0.0,
+    velocity_adapt_time=0.0,
     gyro_bias_random_walk=0.0,
     accel_noise_density=1e-12,
     velocity_sigma=1e-9,

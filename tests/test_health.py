@@ -17,7 +17,7 @@ import rerun as rr
 from rerun.chunk import RrdReader
 from scipy.spatial.transform import Rotation
 
-from mavest import Estimator, EstimatorConfig, StepFlags
+from mavest import EstimateSeries, Estimator, EstimatorConfig, StepFlags
 from mavest.estimator.recursion import _state_is_healthy
 from mavest.evaluation.metrics import attitude_errors
 from mavest.mavlink.tlog import TlogReader
@@ -51,8 +51,8 @@ def _at_rest(seconds: float, rate: float, seed: int) -> tuple[np.ndarray, ...]:
     return t, gyro, accel
 
 
-def _settled(rate: float = 200.0) -> Estimator:
-    estimator = Estimator()
+def _settled(rate: float = 200.0, config: EstimatorConfig | None = None) -> Estimator:
+    estimator = Estimator(config)
     t, gyro, accel = _at_rest(2.0, rate, seed=1)
     estimator.update_batch(t, gyro, accel)
     return estimator
@@ -136,6 +136,7 @@ def test_a_broken_state_is_re_initialised_at_the_next_step_and_said_so(corrupt) 
     t, gyro, accel_rest = _at_rest(1.0, 200.0, seed=2)
     after = estimator.update_batch(2.005 + t, gyro, tilted.inv().apply(accel_rest))
     assert not np.any(after.flags & RESETS)
+    _uses_the_accelerometer_again(after)
 
 
 def test_covariance_is_healthy_on_every_step_and_heading_sigma_stops_at_180_degrees() -> None:
@@ -378,3 +379,24 @@ def test_a_sample_dropped_at_its_fields_limit_tells_the_estimator() -> None:
     series = estimator.update_batch(t + 2.0, gyro, accel)
     realigned = np.flatnonzero(series.flags & StepFlags.CLIP_REALIGNED)
     assert realigned.size == 1 and 0.45 <= t[realigned[0]] <= 0.6
+
+
+def test_a_broken_attitude_does_not_break_the_measured_motion_level() -> None:
+    # the motion level is measured in the estimated world frame: a NaN attitude makes it
+    # NaN too, and the re-initialisation must start it again, or every later step fails
+    config = EstimatorConfig(velocity_adapt_time=1.0)
+    estimator = _settled(config=config)
+    _corrupt_quaternion(estimator._state)
+    t, gyro, accel = _at_rest(2.0, 200.0, seed=2)
+    out = estimator.update_batch(2.0 + t, gyro, accel)
+    assert np.count_nonzero(out.flags & StepFlags.UNHEALTHY_RESET) == 1
+    assert np.all(np.isfinite(out.cov)) and not np.any(out.flags[1:] & RESETS)
+    _uses_the_accelerometer_again(out)
+
+
+def _uses_the_accelerometer_again(out: EstimateSeries) -> None:
+    """Every update after the restarted low-pass's first 0.8 s uses the accelerometer (a
+    low-pass gathered with a broken, NaN attitude stayed NaN for ever, and with it every
+    gravity update was refused as invalid)."""
+    late = (out.t > out.t[0] + 0.9) & ~(out.flags & StepFlags.BETWEEN_UPDATES).astype(bool)
+    assert np.count_nonzero(late) > 0 and np.all(out.accel_used[late])

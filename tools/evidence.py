@@ -1,12 +1,15 @@
 """Accuracy in one run: every filter on every data set, one table (and the plots).
 
-    .venv/bin/python tools/evidence.py [--quick] [--markdown] [--detail] [--plots [DIR]]
+    .venv/bin/python tools/evidence.py [--quick] [--offline] [--markdown] [--detail]
+                                       [--plots [DIR]]
                                        [--results [FILE]]
                                        [--parts broad logs flights] [--trials 02 07 ...]
                                        [--seeds 1 2 3 4] [--seconds 120]
 
 One process, one run, the same samples for every filter: mavest (default and its
-variants), VQF, x-io Fusion and the ``ahrs`` package's Madgwick and Mahony, on
+variants), VQF, x-io Fusion and the ``ahrs`` package's Madgwick and Mahony (with
+--offline also the estimates that see the whole recording: mavest smoothed,
+``mavest.smooth``, and offline VQF, ``vqf.offlineVQF``), on
 
 * BROAD ($MAVEST_DATA/broad, 22 trials with optical truth), scored as the dataset
   does (RMSE over the movement phases, mean over trials): 6-D inclination, and with
@@ -27,7 +30,8 @@ variants), VQF, x-io Fusion and the ``ahrs`` package's Madgwick and Mahony, on
   service's own comparison with SIMSTATE.
 
 Rows are data, columns filters, RMSE in degrees; the best of the filters fed the same
-samples is in bold (the autopilot and mavest as served are not candidates). Per trial,
+samples is in bold (the autopilot, mavest as served and the offline estimates are not
+candidates: an offline estimate uses samples after the one it estimates). Per trial,
 per segment and per flight with --detail; --plots writes the PNGs (error over time,
 mavest against VQF) to DIR (default docs/). Madgwick and Mahony run as pure Python:
 they took 1205 s of a 1549 s full run (two shared cores); --quick leaves them out
@@ -77,6 +81,9 @@ ARDUPILOT_CONFIG = PROJECT / "configs" / "ardupilot.toml"
 PARTS = ("broad", "logs", "flights")
 SLOW_PEERS = ("Madgwick", "Mahony")  # pure Python: left out by --quick
 PLOTTED = ("mavest", "VQF")  # the two filters drawn over time
+SMOOTHED = "mavest smoothed"
+OFFLINE_VQF = "offline VQF"
+OFFLINE = (SMOOTHED, OFFLINE_VQF)  # see the whole recording: shown, never bold
 AUTOPILOT = "autopilot"  # its own estimate, against a simulator's truth
 SERVED = "mavest as served"  # the service on the flight's tlog, GPS-aided, 9-D
 FLIGHT_RATE = 400.0  # Hz, as `make demo`
@@ -148,13 +155,22 @@ class Filters:
     seconds: dict[str, float] = field(default_factory=dict)
 
     @classmethod
-    def chosen(cls, quick: bool) -> Filters:
+    def chosen(cls, quick: bool, offline: bool = False) -> Filters:
         adapters = {"mavest": mavest_adapter()}
         adapters |= {name: mavest_adapter(config) for name, config in MAVEST_VARIANTS.items()}
         for name in PEERS:
-            if not (quick and name in SLOW_PEERS):
+            if not (quick and name in SLOW_PEERS) and name not in OFFLINE:
                 adapters[name] = PEERS[name]
+        if offline:
+            adapters[SMOOTHED] = mavest_adapter(smoothed=True)
+            adapters[OFFLINE_VQF] = PEERS[OFFLINE_VQF]
         return cls(adapters)
+
+    @property
+    def online(self) -> set[str]:
+        """The filters that estimate each sample from the samples up to it: the candidates
+        for bold."""
+        return set(self.adapters) - set(OFFLINE)
 
     @property
     def names(self) -> list[str]:
@@ -464,7 +480,7 @@ def format_table(
         lines.append(
             [row.label]
             + [
-                _cell(row.values.get(name), row.digits, shown.get(name) == lowest)
+                _cell(row.values.get(name), row.digits, name in shown and shown[name] == lowest)
                 for name in columns
             ]
         )
@@ -537,7 +553,7 @@ def detail_tables(
 ) -> list[str]:
     """Per trial, per segment, per flight."""
     names = filters.names
-    same_imu = set(names)
+    same_imu = filters.online
     tables = []
     if broad is not None:
         even = [i for i, t in enumerate(broad.trials) if int(t.name[:2]) % 2 == 0]
@@ -557,16 +573,17 @@ def detail_tables(
                 if subset != []:
                     picked = {n: np.asarray(v)[subset] if subset else v for n, v in values.items()}
                     rows.append(Row(label, _mean(picked), 3))
-            if "VQF" in values:
-                vqf = np.asarray(values["VQF"])
-                rows.append(
-                    Row(
-                        "trials at or below VQF",
-                        {n: float(np.sum(np.asarray(values[n]) <= vqf)) for n in names},
-                        digits=0,
-                        bold_lowest=False,
+            for peer in ("VQF", OFFLINE_VQF):
+                if peer in values:
+                    reference = np.asarray(values[peer])
+                    rows.append(
+                        Row(
+                            f"trials at or below {peer}",
+                            {n: float(np.sum(np.asarray(values[n]) <= reference)) for n in names},
+                            digits=0,
+                            bold_lowest=False,
+                        )
                     )
-                )
             tables.append(format_table(title, names, rows, markdown, same_imu))
     if logs is not None:
         columns = names + ([AUTOPILOT] if any(AUTOPILOT in s.scores for s in logs.scores) else [])
@@ -776,7 +793,13 @@ def write_plots(
 
 
 def _check_packages(parts: Sequence[str], filters: Filters) -> None:
-    needed = {"VQF": "vqf", "Fusion": "imufusion", "Madgwick": "ahrs", "Mahony": "ahrs"}
+    needed = {
+        "VQF": "vqf",
+        OFFLINE_VQF: "vqf",
+        "Fusion": "imufusion",
+        "Madgwick": "ahrs",
+        "Mahony": "ahrs",
+    }
     modules = {needed[name] for name in filters.names if name in needed}
     if "broad" in parts:
         modules.add("h5py")
@@ -796,6 +819,9 @@ def main(argv: list[str] | None = None) -> int:
         epilog=__doc__.split("\n\n", 1)[1],
     )
     parser.add_argument("--quick", action="store_true", help="without Madgwick and Mahony")
+    parser.add_argument(
+        "--offline", action="store_true", help="also mavest smoothed and offline VQF"
+    )
     parser.add_argument("--markdown", action="store_true", help="print Markdown tables")
     report.add_results_option(parser)
     parser.add_argument("--detail", action="store_true", help="per trial, segment and flight")
@@ -820,7 +846,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--seconds must be above the 10 s settle time")
 
     started = time.perf_counter()
-    filters = Filters.chosen(args.quick)
+    filters = Filters.chosen(args.quick, args.offline)
     try:
         _check_packages(args.parts, filters)
         trials = load_broad(args.trials) if "broad" in args.parts else None
@@ -843,7 +869,7 @@ def main(argv: list[str] | None = None) -> int:
                 columns,
                 main_rows(broad, logs, flights),
                 markdown,
-                set(filters.names),
+                filters.online,
             )
         )
         if args.detail:

@@ -9,8 +9,11 @@ bank, light turbulence) written as ArduPilot RAW_IMU at 400 Hz with GPS at
 ``acceleration_aiding`` auto (GPS velocity), airspeed (ω × V) and off, the
 same samples in the same run, with the ArduPilot configuration
 (configs/ardupilot.toml; ``--config`` another). Roll, pitch and tilt RMS
-against the truth after the replay's settle time (10 s). --results writes the table
-(as Markdown) as the Tilt in turns section of docs/results.md (or FILE).
+against the truth after the replay's settle time (10 s). ``--perturb N`` replays each
+flight unaided N more times with ``accel_noise_density`` changed by k·1e-9 (relative,
+k = 1 … N): whether an unaided turning flight re-opens tilt must not hang on the last
+bits of a coefficient, so the tilt RMS's spread over them is printed. --results writes
+the table (as Markdown) as the Tilt in turns section of docs/results.md (or FILE).
 """
 
 from __future__ import annotations
@@ -43,6 +46,9 @@ def main(argv: list[str] | None = None) -> int:
         "--config", type=Path, default=ARDUPILOT_CONFIG, help="mavest configuration (TOML)"
     )
     parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    parser.add_argument(
+        "--perturb", type=int, default=0, help="unaided replays with perturbed coefficients"
+    )
     report.add_results_option(parser)
     args = parser.parse_args(argv)
     markdown = args.markdown or args.results is not None
@@ -59,19 +65,43 @@ def main(argv: list[str] | None = None) -> int:
                 (stream,) = asyncio.run(replay(path, config)).streams
                 result = stream.vs_truth.result()
                 cells.append((result.roll_rms, result.pitch_rms, result.inclination_rms))
-            rows.append((seed, cells))
+            spread = _perturbed(path, base, args.perturb)
+            rows.append((seed, cells, spread))
             print(f"seed {seed} done", file=sys.stderr, flush=True)
 
     header = ["seed"] + [f"{mode}: roll / pitch / tilt (°)" for mode in MODES]
+    if args.perturb:
+        header.append(f"off, {args.perturb} perturbations: tilt min–max (°), resets")
     lines = [" | ".join(header)]
     if markdown:
         lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for seed, cells in rows:
+    for seed, cells, spread in rows:
         texts = [str(seed)] + [f"{r:.2f} / {p:.2f} / {t:.2f}" for r, p, t in cells]
+        if spread:
+            tilts = [tilt for tilt, _ in spread]
+            resets = sorted({reopened for _, reopened in spread})
+            texts.append(
+                f"{min(tilts):.3f}–{max(tilts):.3f} ({', '.join(map(str, resets))} reopened)"
+            )
         lines.append("| " + " | ".join(texts) + " |" if markdown else " | ".join(texts))
     with report.results_section(args.results, "Tilt in turns", __file__, argv, __doc__):
         print("\n".join(lines))
     return 0
+
+
+def _perturbed(path: Path, base: ServiceConfig, count: int) -> list[tuple[float, int]]:
+    """Tilt RMS and tilt re-openings of unaided replays with ``accel_noise_density``
+    moved by k·1e-9 of itself, k = 1 … ``count``."""
+    density = base.estimator.accel_noise_density
+    out = []
+    for k in range(1, count + 1):
+        config = base.replace(
+            input={"acceleration_aiding": "off"},
+            estimator={"accel_noise_density": density * (1.0 + k * 1e-9)},
+        )
+        (stream,) = asyncio.run(replay(path, config)).streams
+        out.append((stream.vs_truth.result().inclination_rms, stream.stats.tilt_reopened))
+    return out
 
 
 if __name__ == "__main__":

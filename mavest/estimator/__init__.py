@@ -9,6 +9,7 @@ from mavest.estimator.estimator import (
     estimate,
 )
 from mavest.estimator.layout import StepFlags
+from mavest.estimator.smoother import smooth
 
 __all__ = [
     "ConfigError",
@@ -19,4 +20,5 @@ __all__ = [
     "InputError",
     "StepFlags",
     "estimate",
+    "smooth",
 ]

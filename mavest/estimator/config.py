@@ -87,6 +87,10 @@ class EstimatorConfig:
     # Sensor noise, as densities.
     gyro_noise_density: float = 0.005  # rad/s/√Hz (angle random walk and unmodelled gyro error)
     gyro_bias_random_walk: float = 2e-5  # rad/s²/√Hz
+    # The gyro's scale-factor and axis-alignment errors (and a reference's timing)
+    # make an attitude error proportional to the rate: white noise of density
+    # this × |ω| on top of gyro_noise_density (0: none).
+    gyro_scale_noise_density: float = 0.0  # √s
     accel_noise_density: float = 0.02  # m/s²/√Hz
     gravity: float = STANDARD_GRAVITY
 
@@ -131,6 +135,14 @@ class EstimatorConfig:
     # correlation time.
     velocity_sigma: float = 1.5  # m/s
     velocity_time: float = 1.0  # s
+    # The velocity's σ measured from the data instead (0: fixed at velocity_sigma):
+    # the horizontal specific force in the estimated world frame, less its low-pass,
+    # integrated with the velocity's correlation time, gives the velocity's fast part;
+    # its mean square over this time is the vehicle's motion level. velocity_sigma
+    # is then the level assumed before any data.
+    velocity_adapt_time: float = 0.0  # s
+    velocity_adapt_gain: float = 2.0  # the measured mean square × this is σ_v²
+    velocity_sigma_min: float = 0.05  # m/s: the adapted σ_v goes no lower
     # When the vehicle's acceleration is known (``linear_accel``, e.g. from GPS
     # velocity) it is removed from the specific force and what is left is the
     # error of that knowledge (the GPS velocity's error and its lag): the same
@@ -243,6 +255,8 @@ class EstimatorConfig:
             "sigma_spread",
             "velocity_sigma",
             "velocity_time",
+            "velocity_adapt_gain",
+            "velocity_sigma_min",
             "aided_velocity_sigma",
             "aided_max_heading_sigma",
             "mag_heading_noise_density",
@@ -257,6 +271,7 @@ class EstimatorConfig:
             _require(math.isfinite(value) and value > 0.0, f"{name} must be > 0, got {value}")
         for name in (
             "gyro_bias_random_walk",
+            "gyro_scale_noise_density",
             "iteration_tolerance",
             "accel_norm_inflation",
             "accel_norm_tolerance",
@@ -275,6 +290,7 @@ class EstimatorConfig:
             "mag_gate",
             "mag_reference_adapt_time",
             "mag_tilt_leak_time",
+            "velocity_adapt_time",
         ):
             value = getattr(self, name)
             _require(math.isfinite(value) and value >= 0.0, f"{name} must be ≥ 0, got {value}")

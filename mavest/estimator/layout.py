@@ -149,6 +149,7 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("sigma_w0_cov", np.float64),
         ("sigma_wi", np.float64),
         ("gyro_var_density", np.float64),  # σ_g², rad²/s
+        ("gyro_scale_var_density", np.float64),  # σ_s², s (× |ω|²: rad²/s)
         ("bias_var_density", np.float64),  # σ_b², rad²/s³
         ("accel_var_density", np.float64),  # σ_a², m²/s³
         ("gravity", np.float64),
@@ -176,6 +177,9 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("accumulate", np.int64),
         ("velocity_var", np.float64),
         ("velocity_time", np.float64),
+        ("velocity_adapt_time", np.float64),  # s; 0: σ_v fixed
+        ("velocity_adapt_gain", np.float64),
+        ("velocity_var_min", np.float64),
         ("aided_velocity_var", np.float64),
         ("aided_max_heading_var", np.float64),
         ("rest_detection", np.int64),
@@ -236,6 +240,10 @@ STATE_DTYPE = np.dtype(
         # low-passed specific force f̄ and its rate ḟ, estimated world frame
         ("accel_world_lp", np.float64, (2, 3)),
         ("lowpass_time", np.float64),  # time averaged since the low-pass started, s
+        # the vehicle's motion level: the horizontal velocity's fast part (the specific
+        # force less its low-pass, leakily integrated) and the velocity variance it shows
+        ("motion_velocity", np.float64, 3),  # (its vertical is kept 0)
+        ("motion_var", np.float64),
         # what depends on Δt alone, for the Δt below: the low-pass's Φ₀₀, Φ₀₁, Φ₁₀, Φ₁₁,
         # Γ₀, Γ₁, the velocity's γ and the rest detector's α
         ("step_coefficients", np.float64, 8),
@@ -355,6 +363,7 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["sigma_w0_cov"] = lam / spread + (1.0 - spread / n + config.sigma_beta)
     c["sigma_wi"] = 0.5 / spread
     c["gyro_var_density"] = config.gyro_noise_density**2
+    c["gyro_scale_var_density"] = config.gyro_scale_noise_density**2
     c["bias_var_density"] = config.gyro_bias_random_walk**2
     c["accel_var_density"] = config.accel_noise_density**2
     c["gravity"] = config.gravity
@@ -383,6 +392,9 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     c["accumulate"] = int(c["update_interval"][0] > 0.0 and config.update != "sigma_point")
     c["velocity_var"] = config.velocity_sigma**2
     c["velocity_time"] = config.velocity_time
+    c["velocity_adapt_time"] = config.velocity_adapt_time
+    c["velocity_adapt_gain"] = config.velocity_adapt_gain
+    c["velocity_var_min"] = config.velocity_sigma_min**2
     c["aided_velocity_var"] = config.aided_velocity_sigma**2
     c["aided_max_heading_var"] = config.aided_max_heading_sigma**2
     c["rest_detection"] = int(config.rest_detection)
@@ -426,6 +438,7 @@ def new_state(coefficients: np.ndarray) -> np.ndarray:
     if c["n_state"] > N_ERROR:  # the vehicle's velocity, the last considered block
         velocity = slice(N_STATE_MAX - N_AXES, N_STATE_MAX)
         s["P"][0, velocity, velocity] = c["velocity_var"] * np.eye(N_AXES)
+    s["motion_var"] = c["velocity_var"]
     s["t"] = -np.inf
     s["t_accel"] = -np.inf
     s["t_update"] = -np.inf

@@ -316,6 +316,9 @@ def _move_nominal(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None
         so3.quat_divide_right_into(s.q, s.w_p4, s.w_q4)
         for stage in range(2):
             so3.quat_rotate_into(s.w_q4, s.accel_world_lp[stage], s.accel_world_lp[stage])
+        # the motion's velocity is a world vector too; only its horizontal part is kept
+        so3.quat_rotate_into(s.w_q4, s.motion_velocity, s.motion_velocity)
+        s.motion_velocity[2] = 0.0
 
 
 @inplace_kernel
@@ -440,6 +443,9 @@ def _prime_filters(
         for j in range(n):
             s.P[i, j] = 0.0
             s.P[j, i] = 0.0
+    # (f̄ is cleared as well as ḟ: β = 0 weighs the old f̄ by zero, which keeps a NaN —
+    # a broken attitude's — for ever)
+    s.accel_world_lp[0, :] = 0.0
     s.accel_world_lp[1, :] = 0.0
     s.lowpass_time = 0.0
     _absorb_sample(s, c, accel, dt, True)  # mean mode with nothing averaged yet: β = 0
@@ -457,7 +463,49 @@ def _reset_velocity_covariance(s: StateRecord, c: CoefficientsRecord) -> None:
         for j in range(n):
             s.P[i, j] = 0.0
             s.P[j, i] = 0.0
-        s.P[i, i] = c.velocity_var
+        s.P[i, i] = _velocity_variance(s, c)
+
+
+@inplace_kernel
+def _velocity_variance(s: StateRecord, c: CoefficientsRecord) -> float:
+    """σ_v² of the unaided velocity model: configured, or measured (_track_motion)."""
+    if c.velocity_adapt_time > 0.0:
+        return max(s.motion_var, c.velocity_var_min)
+    return c.velocity_var
+
+
+@inplace_kernel
+def _restart_motion(s: StateRecord, c: CoefficientsRecord) -> None:
+    """The motion level back to the one assumed before any data."""
+    for i in range(3):
+        s.motion_velocity[i] = 0.0
+    s.motion_var = c.velocity_var
+
+
+@inplace_kernel
+def _track_motion(s: StateRecord, c: CoefficientsRecord, gamma: float, dt: float) -> None:
+    """The vehicle's motion level from this sample (``s.w_v3``: R̄ a, before the
+    low-pass takes it), as σ_v² of the velocity model.
+
+    The sample's horizontal departure from the low-pass f̄ is the linear
+    acceleration without its slow part; integrated with the velocity model's γ it
+    is the velocity's fast part, ṽ ← γ ṽ + (R̄ a − f̄) Δt. Its mean square over
+    ``velocity_adapt_time`` (an exponential average), times the gain, is σ_v²:
+    for the model's own Gauss–Markov velocity the high-pass keeps 1/1.71 of the
+    variance (τ = 3 s, T_v = 1 s), and the default gain 2 errs on the safe side.
+    f̄ turns with every correction of the attitude, so a tilt error's share of
+    gravity, which R̄ a and f̄ hold alike, stays out of the difference: a large
+    initial error does not read as motion.
+    """
+    if c.velocity_adapt_time <= 0.0:
+        return
+    square = 0.0
+    for i in range(N_AXES):
+        v = gamma * s.motion_velocity[i] + (s.w_v3[i] - s.accel_world_lp[0, i]) * dt
+        s.motion_velocity[i] = v
+        square += v * v
+    alpha = dt / (c.velocity_adapt_time + dt)
+    s.motion_var += alpha * (c.velocity_adapt_gain * square / N_AXES - s.motion_var)
 
 
 # --------------------------------------------------------------------------
@@ -501,14 +549,17 @@ def _world_tilt_rows(s: StateRecord, c: CoefficientsRecord, out: np.ndarray) -> 
 
 
 @inplace_kernel
-def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float, n: int) -> None:
+def _add_process_noise(
+    s: StateRecord, c: CoefficientsRecord, dt: float, n: int, rate_sq: float
+) -> None:
     """P[:n, :n] += Q_d (Van Loan, with the cross term's rotation M, w_R or w_n33:
-    :func:`_process_noise_rotation`).
+    :func:`_process_noise_rotation`). ``rate_sq``: the step's |ω|², which the
+    gyro's scale and alignment errors are proportional to.
 
     With the considered ε (n > 6), its rows receive G = g E W times the
     attitude noise: the same noise moves δθ and, through it, ε.
     """
-    var_g = c.gyro_var_density
+    var_g = c.gyro_var_density + c.gyro_scale_var_density * rate_sq
     var_b = c.bias_var_density
     q_aa = var_g * dt + var_b * dt * dt * dt / 3.0
     q_ab = -0.5 * var_b * dt * dt
@@ -542,6 +593,12 @@ def _add_process_noise(s: StateRecord, c: CoefficientsRecord, dt: float, n: int)
             for k in range(3):
                 acc += G[a, k] * G[b, k]
             P[_EPS + a, _EPS + b] += q_aa * acc
+
+
+@inplace_kernel
+def _rate_squared(phi: np.ndarray, dt: float) -> float:
+    """|ω|² of a step's rotation φ = ω Δt."""
+    return (phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]) / (dt * dt)
 
 
 @inplace_kernel
@@ -619,7 +676,7 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
         if n > N_ERROR:
             P[i, _EPS] += G[0, 0] * b0 + G[0, 1] * b1 + G[0, 2] * b2
             P[i, _EPS + 1] += G[1, 0] * b0 + G[1, 1] * b1 + G[1, 2] * b2
-    _add_process_noise(s, c, dt, n)
+    _add_process_noise(s, c, dt, n, _rate_squared(phi, dt))
     if c.accumulate:
         _accumulate_prediction(s, c)
 
@@ -944,6 +1001,7 @@ def _predict_sigma_point(
     phi = s.w_v3
     for i in range(3):
         phi[i] = (gyro[i] - s.b[i]) * dt
+    rate_sq = _rate_squared(phi, dt)
     _process_noise_rotation(s, c, phi)
     # the new reference: the nominal propagated with the nominal bias
     so3.quat_exp_into(phi, s.w_q4)
@@ -983,7 +1041,7 @@ def _predict_sigma_point(
     _weighted_mean_and_covariance_of_chi(s, c, s.w_dx)
     for i in range(_EPS, n):  # ε is considered: its mean stays zero
         s.w_dx[i] = 0.0
-    _add_process_noise(s, c, dt, n)
+    _add_process_noise(s, c, dt, n, rate_sq)
     _apply_correction(s, c, s.w_dx)
     return True
 
@@ -1386,12 +1444,15 @@ def _absorb_sample(
     lp = s.accel_world_lp
     _step_coefficients(s, c, dt)
     step = s.step_coefficients
+    primed = s.lowpass_time > 0.0  # f̄ holds a sample: the motion is measured against it
     if s.lowpass_time < c.accel_lowpass_time:
         beta = s.lowpass_time / (s.lowpass_time + dt)
         p00, p01, p10, p11, g0, g1 = beta, 0.0, 0.0, 1.0, 1.0 - beta, 0.0
         s.lowpass_time += dt
     else:
         p00, p01, p10, p11, g0, g1 = step[0], step[1], step[2], step[3], step[4], step[5]
+    if primed and not aided:
+        _track_motion(s, c, step[6], dt)
     for i in range(3):
         y, rate = lp[0, i], lp[1, i]
         lp[0, i] = p00 * y + p01 * rate + g0 * s.w_v3[i]
@@ -1400,7 +1461,7 @@ def _absorb_sample(
     cv = (gamma - 1.0) / dt
     a02, a12 = g0 * cv, g1 * cv
     var_eta = c.accel_var_density / dt
-    var_xi = (c.aided_velocity_var if aided else c.velocity_var) * (1.0 - gamma * gamma)
+    var_xi = (c.aided_velocity_var if aided else _velocity_variance(s, c)) * (1.0 - gamma * gamma)
     b0, b1 = g0 / dt, g1 / dt
     # the step's own noise b_η b_ηᵀ var η + b_ξ b_ξᵀ var ξ on (ε, ḟ, v): its upper triangle
     n00 = g0 * g0 * var_eta + b0 * b0 * var_xi
@@ -2334,6 +2395,7 @@ def _reinitialise(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> N
     be what went wrong. Without a usable accelerometer: uninitialised, and the
     next usable sample initialises."""
     keep_heading = _vector_is_finite(s.q[1:]) and math.isfinite(s.q[0])
+    _restart_motion(s, c)  # (measured with the broken attitude, it may be what broke)
     if keep_heading:
         so3.quat_normalize_into(s.q)
     else:

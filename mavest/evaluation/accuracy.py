@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavest.datasets.broad import BroadTrial
-from mavest.estimator import EstimatorConfig, estimate
+from mavest.estimator import EstimatorConfig, estimate, smooth
 from mavest.evaluation.metrics import rmse_deg
 from mavest.evaluation.peers import PEERS, PeerAdapter
 
@@ -27,9 +27,11 @@ MAVEST_VARIANTS: dict[str, EstimatorConfig] = {
 }
 
 
-def mavest_adapter(config: EstimatorConfig | None = None) -> PeerAdapter:
+def mavest_adapter(config: EstimatorConfig | None = None, smoothed: bool = False) -> PeerAdapter:
     """mavest with ``config``, called like a peer adapter: ``run(t, gyro, accel, mag, rate)``
-    (``rate`` is unused: mavest takes each sample's own time step)."""
+    (``rate`` is unused: mavest takes each sample's own time step); ``smoothed``: the
+    smoother (:func:`mavest.smooth`) instead of the filter."""
+    run_mavest = smooth if smoothed else estimate
 
     def run(
         t: np.ndarray,
@@ -38,14 +40,17 @@ def mavest_adapter(config: EstimatorConfig | None = None) -> PeerAdapter:
         mag: np.ndarray | None = None,
         rate: float | None = None,
     ) -> np.ndarray:
-        return estimate(t, gyro, accel, mag, config).q
+        return run_mavest(t, gyro, accel, mag, config).q
 
     return run
 
 
-def mavest_filter(config: EstimatorConfig | None = None, mag: bool = False) -> Filter:
-    """mavest in 6-D (gyro and accelerometer), or 9-D with ``mag``, with ``config``."""
-    adapter = mavest_adapter(config)
+def mavest_filter(
+    config: EstimatorConfig | None = None, mag: bool = False, smoothed: bool = False
+) -> Filter:
+    """mavest in 6-D (gyro and accelerometer), or 9-D with ``mag``, with ``config``;
+    ``smoothed``: the smoother."""
+    adapter = mavest_adapter(config, smoothed)
 
     def run(trial: BroadTrial) -> np.ndarray:
         return adapter(trial.t, trial.gyro, trial.accel, trial.mag if mag else None)

@@ -25,6 +25,7 @@ from mavest._jit import kernel
 from mavest.estimator.charts import chart_quat_into, local_into
 from mavest.estimator.config import CHARTS, ERROR_SIDES, EstimatorConfig
 from mavest.estimator.estimator import Estimator
+from mavest.estimator.smoother import smooth_forward
 from mavest.evaluation.metrics import attitude_errors
 from mavest.sim.kinematic import ImuNoise, Motion, SimulatedImu, earth_field, simulate
 
@@ -63,6 +64,14 @@ SCENARIOS: tuple[Scenario, ...] = (
         math.radians(2.0),
         math.radians(2.0),
         Motion(burst_magnitude=3.0, burst_duration=1.0, burst_interval=5.0),
+    ),
+    Scenario(
+        "changing_motion",
+        "tilt₀ 2°, heading₀ 2°, velocity σ 0.2 m/s, 3 m/s from 20 s, 0.5 m/s from 40 s "
+        "(not the configured level)",
+        math.radians(2.0),
+        math.radians(2.0),
+        Motion(velocity_levels=((0.0, 0.2), (20.0, 3.0), (40.0, 0.5))),
     ),
     Scenario(
         "small_9d",
@@ -120,9 +129,17 @@ class RunResult:
 
 
 def run_once(
-    config: EstimatorConfig, scenario: Scenario, data: SimulatedImu, seed: int
+    config: EstimatorConfig,
+    scenario: Scenario,
+    data: SimulatedImu,
+    seed: int,
+    smoothed: bool = False,
 ) -> RunResult:
-    """One flight: start from a prior drawn from the covariance the filter is given."""
+    """One flight: start from a prior drawn from the covariance the filter is given.
+
+    ``smoothed``: score the smoother (:func:`~mavest.estimator.smoother.smooth_forward`
+    on this forward pass) instead of the filter; the NIS stays the forward pass's.
+    """
     rng = np.random.default_rng(seed)
     P0 = np.diag(
         [scenario.tilt_sigma**2, scenario.tilt_sigma**2, scenario.heading_sigma**2]
@@ -139,6 +156,23 @@ def run_once(
     estimator.initialise(data.t[0], q0, np.zeros(3), P0)
     mag = data.mag[1:] if scenario.magnetometer else None
     out = estimator.update_batch(data.t[1:], data.gyro[1:], data.accel[1:], mag)
+    nis = np.where(out.accel_used, out.nis, np.nan)
+    if smoothed:
+        # the backward pass starts, as the forward one, from a prior drawn around the
+        # truth (at the last sample; aligning on one sample would be at the mercy of
+        # that sample's linear acceleration)
+        delta = rng.multivariate_normal(np.zeros(3), P0[:3, :3])
+        chart_quat_into(delta, chart_index, error_rotation)
+        q_end = so3.quat_multiply(so3.quat_conjugate(error_rotation), data.q_true[-1])
+        out = smooth_forward(
+            out,
+            data.t[1:],
+            data.gyro[1:],
+            data.accel[1:],
+            mag,
+            config,
+            backward_start=(q_end, np.zeros(3), P0),
+        )
     e = _errors(
         data.q_true[1:],
         data.bias_true[1:],
@@ -148,7 +182,6 @@ def run_once(
         chart_index,
     )
     errors = attitude_errors(out.q, data.q_true[1:])
-    nis = np.where(out.accel_used, out.nis, np.nan)
     return RunResult(
         _nees(e, out.cov),
         _nees(e[:, :3], out.cov[:, :3, :3]),
@@ -237,7 +270,8 @@ def simulate_scenario(scenario: Scenario, config: EstimatorConfig, seed: int) ->
     """The flight of one run (the same for every variant compared on it).
 
     Sensor noise and the vehicle's velocity variations are what the
-    configuration claims; the scenario's bursts come on top, unmodelled.
+    configuration claims (unless the scenario sets the velocity's levels); the
+    scenario's bursts come on top, unmodelled.
     """
     motion = dataclasses.replace(
         scenario.motion,
@@ -256,12 +290,19 @@ def simulate_scenario(scenario: Scenario, config: EstimatorConfig, seed: int) ->
 
 
 def monte_carlo(
-    configs: list[EstimatorConfig], scenario: Scenario, runs: int, seed: int = 0
+    configs: list[EstimatorConfig],
+    scenario: Scenario,
+    runs: int,
+    seed: int = 0,
+    smoothed: bool = False,
 ) -> list[Summary]:
-    """Summaries for each config on the same ``runs`` flights (their noise must agree)."""
+    """Summaries for each config on the same ``runs`` flights (their noise must agree);
+    ``smoothed``: of the smoother on each config's forward pass."""
     per_config: list[list[RunResult]] = [[] for _ in configs]
     for k in range(runs):
         data = simulate_scenario(scenario, configs[0], seed + k)
         for i, config in enumerate(configs):
-            per_config[i].append(run_once(config, scenario, data, seed + 10_000 + k))
+            per_config[i].append(
+                run_once(config, scenario, data, seed + 10_000 + k, smoothed=smoothed)
+            )
     return [summarise(results, scenario.rate) for results in per_config]

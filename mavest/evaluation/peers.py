@@ -17,8 +17,9 @@ magnetometer in the *same* body frame), so the FRD samples are passed as they ar
 the peer's units; what differs is the peer's world frame, and the peer's output is
 mapped to NED by a constant left factor, q_NED = q(W → NED) ⊗ q_W:
 
-* VQF (``vqf``, C++ core): world ENU (z up; in 9-D, y towards magnetic north);
-  rad/s and m/s².
+* VQF (``vqf``, C++ core) and its offline variant (``vqf.offlineVQF``, acausal: each
+  sample given the whole recording): world ENU (z up; in 9-D, y towards magnetic
+  north); rad/s and m/s².
 * x-io Fusion (``imufusion``): world NED, chosen with ``settings.convention``; °/s and g.
 * ``ahrs`` Madgwick: world z up; in 9-D NWU (x towards magnetic north), taken as NWU in
   6-D too; rad/s and m/s² (normalised inside).
@@ -52,6 +53,7 @@ __all__ = [
     "run_fusion",
     "run_madgwick",
     "run_mahony",
+    "run_offline_vqf",
     "run_vqf",
 ]
 
@@ -165,6 +167,27 @@ def run_vqf(
     else:
         out = VQF(ts).updateBatch(gyro, accel, mag)
         q_enu = out["quat9D"]
+    return quat_multiply(_Q_NED_FROM_ENU, q_enu)
+
+
+def run_offline_vqf(
+    t: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    mag: np.ndarray | None = None,
+    rate: float | None = None,
+) -> np.ndarray:
+    """Offline VQF (``vqf.offlineVQF``, Laidig & Seel 2023), default parameters: the
+    acausal variant, which uses the samples after each one as well (the smoother's peer).
+
+    The same world and units as :func:`run_vqf`; ``quat6D`` without ``mag``, ``quat9D``
+    with it; the sample time is 1/rate (uniform sampling assumed).
+    """
+    from vqf import offlineVQF
+
+    _, gyro, accel, mag, rate = _prepare(t, gyro, accel, mag, rate)
+    out = offlineVQF(gyro, accel, mag, 1.0 / rate)
+    q_enu = out["quat6D"] if mag is None else out["quat9D"]
     return quat_multiply(_Q_NED_FROM_ENU, q_enu)
 
 
@@ -286,6 +309,7 @@ def run_mahony(
 #: Display name → adapter, for evaluation tools.
 PEERS: dict[str, PeerAdapter] = {
     "VQF": run_vqf,
+    "offline VQF": run_offline_vqf,
     "Fusion": run_fusion,
     "Madgwick": run_madgwick,
     "Mahony": run_mahony,

@@ -515,6 +515,8 @@ class BulkFeed:
         while True:
             series, count, cut = part.result()
             first, done = done, done + count
+            if stream.inputs is not None:  # kept to be smoothed (as Pipeline._step keeps them)
+                stream.inputs.add_many(*(x[first:done] for x in inputs), series.flags[:count])
             ended = cut or done == plain_count
             if not ended:
                 inputs_after = _part(inputs, done, size, plain_count)

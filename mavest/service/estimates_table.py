@@ -22,6 +22,12 @@ column                                             type     meaning
 ``flags``                                          int64    what the step did (StepFlags)
 =================================================  =======  =================================
 
+With ``replay --smooth`` the same rows also hold the sample's smoothed estimate
+(:data:`SMOOTHED_COLUMNS`, float64, after the others): ``smoothed_qw`` … ``smoothed_qz``,
+``smoothed_roll_deg`` … ``smoothed_yaw_deg``, ``smoothed_sigma_roll_deg`` …
+``smoothed_sigma_yaw_deg``, ``smoothed_bias_x_dps`` … ``smoothed_bias_z_dps``, as their
+online namesakes are (NaN for a stream the smoother refused).
+
 One file for all the streams a run estimates, a row each time one of them is
 estimated (in the order they were): the four stream columns pick one out. In
 Parquet ``message`` is dictionary-encoded (a category in pandas); in CSV
@@ -30,7 +36,8 @@ text that reads back as the same number).
 
 The file appears whole or not at all: rows are written, a block at a time (memory
 stays flat however long the run), to a hidden file beside it (:func:`paths.partial_path`)
-renamed at the end. A run stopped by Ctrl-C keeps the rows it has, all complete; a
+renamed at the end (with ``--smooth``, once the smoothed columns are added to its rows,
+a block at a time too). A run stopped by Ctrl-C keeps the rows it has, all complete; a
 run that fails on an error leaves no file. Parquet needs pyarrow
 (``pip install 'mavest[parquet]'``), CSV nothing.
 """
@@ -41,8 +48,10 @@ import contextlib
 import csv
 import importlib.util
 import io
+import itertools
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +82,16 @@ COLUMNS: tuple[str, ...] = (
     "nis",
     "accel_used",
     "flags",
+)
+# With replay --smooth, after COLUMNS: the smoothed estimate of the row's sample.
+SMOOTHED_COLUMNS: tuple[str, ...] = tuple(
+    f"smoothed_{name}"
+    for name in (
+        *("qw", "qx", "qy", "qz"),
+        *("roll_deg", "pitch_deg", "yaw_deg"),
+        *("sigma_roll_deg", "sigma_pitch_deg", "sigma_yaw_deg"),
+        *("bias_x_dps", "bias_y_dps", "bias_z_dps"),
+    )
 )
 FORMATS = {".csv": "csv", ".parquet": "parquet"}
 
@@ -113,7 +132,11 @@ class EstimatesTable:
     (:attr:`error` says what happened).
     """
 
-    def __init__(self, path: str | Path, block_rows: int | None = None) -> None:
+    def __init__(
+        self, path: str | Path, block_rows: int | None = None, smoothing: bool = False
+    ) -> None:
+        """``smoothing``: the run may add smoothed columns at its end (:meth:`add_smoothed`):
+        each row's stream is kept (4 bytes a row) to find its smoothed estimate."""
         self.path = Path(path)
         kind = table_format(self.path)
         block_rows = block_rows or BLOCK_ROWS
@@ -137,6 +160,10 @@ class EstimatesTable:
         self._last_key: Any = None
         self._last_index = 0
         self._file: _CsvFile | _ParquetFile | None = None
+        # each written row's stream (with ``smoothing``), a block at a time
+        self._order: list[np.ndarray] | None = [] if smoothing else None
+        # stream index → its smoothed (q, euler, sigma, bias), as add_smoothed took them
+        self._smoothed: dict[int, tuple[np.ndarray, ...]] = {}
         try:
             self._file = (
                 _CsvFile(self._temporary) if kind == "csv" else _ParquetFile(self._temporary)
@@ -279,7 +306,24 @@ class EstimatesTable:
             self.rows += self._file.write(columns, names)
         except OSError as error:
             self._stop(error)
+        if self._order is not None:
+            self._order.append(self._stream[: self._n].astype(np.int32))
         self._n = 0
+
+    def add_smoothed(
+        self,
+        stream: Any,
+        q: np.ndarray,
+        euler: np.ndarray,
+        sigma: np.ndarray,
+        bias: np.ndarray,
+    ) -> None:
+        """A stream's smoothed estimates (radians, rad/s), one per row it has, in order:
+        written in :data:`SMOOTHED_COLUMNS` when the table closes (a table made with
+        ``smoothing``; every stream gets the columns, NaN for one not given here)."""
+        if self._order is None:
+            raise ValueError("a table made without smoothing takes no smoothed columns")
+        self._smoothed[self._index(stream)] = (q, euler, sigma, bias)
 
     def _stop(self, error: OSError) -> None:
         """Write no more: a CSV keeps its whole rows, a Parquet file goes."""
@@ -323,7 +367,47 @@ class EstimatesTable:
             self._file = file
             self._stop(error)
             return
+        if self._order is not None and self._smoothed:
+            self._add_smoothed_columns(isinstance(file, _CsvFile))
         self._publish()
+
+    def _add_smoothed_columns(self, csv_file: bool) -> None:
+        """Rewrite the written table with the smoothed columns added to its rows, a block
+        at a time; if that fails, the table stays as it is, without them (said)."""
+        assert self._order is not None
+        order = np.concatenate(self._order) if self._order else np.empty(0, np.int32)
+        self._order = None
+        position = np.empty(order.shape[0], dtype=np.int64)  # the row's index in its stream
+        for index in range(len(self._keys)):
+            rows = np.flatnonzero(order == index)
+            position[rows] = np.arange(rows.shape[0])
+        smoothed, self._smoothed = self._smoothed, {}
+
+        def values(start: int, stop: int) -> np.ndarray:
+            """The smoothed columns of rows [start, stop)."""
+            out = np.full((stop - start, len(SMOOTHED_COLUMNS)), np.nan)
+            streams, at = order[start:stop], position[start:stop]
+            for index, (q, euler, sigma, bias) in smoothed.items():
+                rows = np.flatnonzero((streams == index) & (at < q.shape[0]))
+                taken = at[rows]
+                out[rows, :4] = q[taken]
+                out[rows, 4:] = np.degrees(np.hstack([euler[taken], sigma[taken], bias[taken]]))
+            return out
+
+        rewritten = partial_path(self._temporary)
+        try:
+            if csv_file:
+                _add_csv_columns(self._temporary, rewritten, values)
+            else:
+                _add_parquet_columns(self._temporary, rewritten, values)
+            os.replace(rewritten, self._temporary)
+        except OSError as error:
+            rewritten.unlink(missing_ok=True)
+            log.error(
+                "cannot add the smoothed columns to %s: %s; it holds the online estimates only",
+                self.path,
+                error.strerror or error,
+            )
 
     def discard(self) -> None:
         """No file: the run failed (whatever is buffered or written goes)."""
@@ -332,6 +416,52 @@ class EstimatesTable:
             file.close_quietly()
         self._temporary.unlink(missing_ok=True)
         self._n = 0
+
+
+# the smoothed columns of a table's rows [start, stop)
+_Values = Callable[[int, int], np.ndarray]
+
+
+def _add_csv_columns(source: Path, target: Path, values: _Values, piece: int = _CSV_PIECE) -> None:
+    """``source``'s CSV rows, each followed by its :data:`SMOOTHED_COLUMNS` (``values(start,
+    stop)``: those of rows [start, stop), as an array), into ``target``."""
+    with source.open("rb") as rows, target.open("wb") as out:
+        header = rows.readline()
+        out.write(header.rstrip(b"\n") + b"," + ",".join(SMOOTHED_COLUMNS).encode() + b"\n")
+        start = 0
+        while lines := list(itertools.islice(rows, piece)):
+            text = io.StringIO()
+            csv.writer(text, lineterminator="\n").writerows(
+                values(start, start + len(lines)).tolist()
+            )
+            added = text.getvalue().encode().split(b"\n")
+            out.write(
+                b"".join(
+                    line.rstrip(b"\n") + b"," + more + b"\n"
+                    for line, more in zip(lines, added, strict=False)
+                )
+            )
+            start += len(lines)
+
+
+def _add_parquet_columns(source: Path, target: Path, values: _Values) -> None:
+    """``source``'s Parquet row groups, each with the :data:`SMOOTHED_COLUMNS` of its rows
+    (``values(start, stop)``), into ``target``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    with pq.ParquetFile(source) as table:
+        schema = table.schema_arrow
+        for name in SMOOTHED_COLUMNS:
+            schema = schema.append(pa.field(name, pa.float64()))
+        start = 0
+        with pq.ParquetWriter(target, schema) as writer:
+            for group in range(table.num_row_groups):
+                rows = table.read_row_group(group)
+                added = values(start, start + rows.num_rows)
+                arrays = [*rows.columns, *(pa.array(added[:, i]) for i in range(added.shape[1]))]
+                writer.write_table(pa.Table.from_arrays(arrays, schema=schema))
+                start += rows.num_rows
 
 
 class _CsvFile:

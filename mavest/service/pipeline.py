@@ -46,6 +46,7 @@ from mavest.mavlink.signing import Signing, Verifier
 from mavest.mavlink.tlog import TlogWriter
 from mavest.service.aiding import AIRSPEED_MAX_AGE, GpsAcceleration, without_centripetal
 from mavest.service.config import ServiceConfig
+from mavest.service.smoothing import RecordedComparison, RecordedInputs
 
 log = logging.getLogger("mavest")
 
@@ -137,6 +138,8 @@ class Stream:
     rate_warned: bool = False  # told the user the stream is too slow to estimate from
     # samples off the stream's timeline, held until the clock confirms or drops theirs
     held: list[ImuSample] = field(default_factory=list)
+    # what its filter took, to be smoothed after the run (Pipeline.smoothing); else None
+    inputs: RecordedInputs | None = None
 
     @property
     def rate(self) -> float:
@@ -213,6 +216,9 @@ class Pipeline:
         # whether the streams' estimators are fed in batches (a replay's BulkFeed), the
         # few samples that come one at a time too (Estimator's batch_fed)
         self.batch_fed = False
+        # whether each stream keeps its filter's inputs and its comparisons' references, to
+        # be smoothed after the run (replay --smooth): set before the first sample
+        self.smoothing = False
 
     # ---------------------------------------------------------------- input
 
@@ -410,11 +416,13 @@ class Pipeline:
         # The stream's clock confirms a new timeline before the estimator sees it, and
         # then hands it the samples it held meanwhile: the estimator believes every time.
         estimator_config = self.config.estimator.replace(timeline_confirm=1)
+        comparison = RecordedComparison if self.smoothing else EulerComparison
         stream = Stream(
             key,
             Estimator(estimator_config, batch_fed=self.batch_fed),
-            vs_autopilot=EulerComparison(wanted.settle_time),
-            vs_truth=EulerComparison(wanted.settle_time),
+            vs_autopilot=comparison(wanted.settle_time),
+            vs_truth=comparison(wanted.settle_time),
+            inputs=RecordedInputs() if self.smoothing else None,
         )
         if vehicle.declination is not None:
             stream.estimator.declination = vehicle.declination
@@ -485,6 +493,8 @@ class Pipeline:
             stream.next_output = -math.inf
             stream.vs_autopilot.restart()
             stream.vs_truth.restart()
+            if stream.inputs is not None:
+                stream.inputs.restart()
         elif event is ClockEvent.WRAPPED:
             stats.wraps += 1
             log.info("%s: the 32-bit timestamp wrapped", stream.key)
@@ -509,6 +519,8 @@ class Pipeline:
         if flags & StepFlags.SKIPPED:
             _reject(stream, "skipped by the estimator: " + ", ".join(StepFlags.describe(flags)))
             return
+        if stream.inputs is not None:
+            stream.inputs.add(t, gyro, accel, mag, linear_accel)
         if flags & StepFlags.ACCEL_AIDED:
             stats.gps_aided += 1
         elif airspeed_aided:

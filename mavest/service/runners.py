@@ -30,7 +30,7 @@ import numpy as np
 from mavest.estimator import Estimator
 from mavest.mavlink.bulk import RecordIndex
 from mavest.mavlink.links import Link, make_link, parse_endpoint
-from mavest.mavlink.messages import IMU_MESSAGES
+from mavest.mavlink.messages import IMU_MESSAGES, StreamKey
 from mavest.mavlink.signing import Signing
 from mavest.mavlink.tlog import TlogReader, TlogRecord, TlogWriter, message_ids
 from mavest.onboard import LogDamage, OnboardLogError, detect, load
@@ -41,6 +41,7 @@ from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import EstimatesTable, EstimatesTableError, table_format
 from mavest.service.pipeline import EstimateSink, Pipeline, Stream
 from mavest.service.signals import stop_on_signals
+from mavest.service.smoothing import SmoothedStream, smooth_stream
 from mavest.viz.viewer import (
     DEFAULT_GRPC_PORT,
     DEFAULT_WEB_PORT,
@@ -120,6 +121,10 @@ class RunReport:
     compile_seconds: float = 0.0
     # the replay was over and a served viewer went on serving it until the stop
     lingered: bool = False
+    # replay --smooth: each stream smoothed (one the smoother refused is absent), or why
+    # nothing was
+    smoothed: dict[StreamKey, SmoothedStream] = field(default_factory=dict)
+    smoothing_skipped: str = ""
 
     @property
     def streams(self) -> list[Stream]:
@@ -142,7 +147,8 @@ class _Opened:
     (:meth:`abandon`) leaves no table: it appears whole, when the run ends.
     """
 
-    def __init__(self, outputs: Outputs) -> None:
+    def __init__(self, outputs: Outputs, smoothing: bool = False) -> None:
+        """``smoothing``: smoothed estimates may come at the end (:meth:`on_smoothed`)."""
         request = outputs.viewer_request()
         if request.wanted:
             # rerun-sdk only when asked for (a second to import), and before any file is
@@ -181,7 +187,7 @@ class _Opened:
             self.sinks.append(self.recorder)
         if outputs.estimates is not None:
             try:
-                self.table = EstimatesTable(outputs.estimates)
+                self.table = EstimatesTable(outputs.estimates, smoothing=smoothing)
             except EstimatesTableError:
                 self.close()
                 raise
@@ -225,6 +231,16 @@ class _Opened:
             self._recorder_flushed = time.monotonic()
         if self.viewer is not None:
             self.viewer.flush()
+
+    def on_smoothed(self, stream: Stream, smoothed: SmoothedStream) -> None:
+        """A stream's smoothed estimate, beside its online one in the table and the
+        recording."""
+        if self.table is not None:
+            self.table.add_smoothed(
+                stream, smoothed.q, smoothed.euler, smoothed.sigma, smoothed.bias
+            )
+        if self.recorder is not None and self._recording:
+            self.recorder.on_smoothed(stream, smoothed.t, smoothed.euler, smoothed.sigma)
 
     def check_space(self) -> None:
         """Close the .rrd while it can still be completed if its disk is nearly full."""
@@ -326,6 +342,7 @@ async def replay(
     stop: asyncio.Event | None = None,
     fast: bool = True,
     linger: Callable[[RunReport], Awaitable[None]] | None = None,
+    smooth: bool = False,
 ) -> RunReport:
     """Replay a log through the pipeline: a tlog, or an onboard log (DataFlash, ULog) by
     content (:class:`~mavest.mavlink.tlog.TlogError`,
@@ -337,15 +354,18 @@ async def replay(
     one at a time, as the live service does. ``linger``: when the whole log was replayed
     into a viewer mavest serves (``--rerun serve``), awaited with the finished report
     before the viewer is stopped (it holds the recording: the served page shows nothing
-    once it goes).
+    once it goes). ``smooth``: when the whole log is replayed, each stream is smoothed
+    too (:mod:`mavest.service.smoothing`): :attr:`RunReport.smoothed`, and beside the
+    online estimate in the table and the recording.
     """
     outputs = outputs or Outputs()
     check_outputs({"the log being replayed": path}, outputs.paths())
     source = _open_log(path, config)
     reader = source.reader
-    opened = _Opened(outputs)
+    opened = _Opened(outputs, smoothing=smooth)
     tlog = opened.tlog
     pipeline = Pipeline(config, out_tlog=tlog, sinks=opened.sinks)
+    pipeline.smoothing = smooth
     bar = _Progress(reader.size, enabled=progress)
     _settle_heap()
     report = RunReport(pipeline, 0.0, source=source.label, outputs=outputs)
@@ -390,6 +410,9 @@ async def replay(
                 report.interrupted = True
                 break
         _check_rates(pipeline, source.rate_advice)
+        if smooth:
+            bar.finish()
+            _smooth(report, opened)
         if linger is not None and opened.serving and not report.interrupted:
             if feed is not None:
                 feed.close()
@@ -411,6 +434,21 @@ async def replay(
         _fill_replay_report(report, source, opened, start)
     report.output_errors = opened.errors()
     return report
+
+
+def _smooth(report: RunReport, opened: _Opened) -> None:
+    """Smooth each stream the replay estimated, into the report, the table and the
+    recording; an interrupted replay is not smoothed (the user asked to stop), said in
+    one line."""
+    if report.interrupted:
+        report.smoothing_skipped = "smoothing skipped: the replay was interrupted"
+        log.warning("%s", report.smoothing_skipped)
+        return
+    for key, stream in report.pipeline.streams.items():
+        smoothed = smooth_stream(stream)
+        if smoothed is not None:
+            report.smoothed[key] = smoothed
+            opened.on_smoothed(stream, smoothed)
 
 
 @dataclass(frozen=True)
@@ -846,14 +884,27 @@ def format_summary(report: RunReport) -> str:
             "    vehicle acceleration removed: " + (", ".join(aided) if aided else "never")
         )
         settle = pipeline.config.input.settle_time
-        for name, comparison in (
-            ("truth (SIMSTATE)", stream.vs_truth),
-            ("autopilot ATTITUDE", stream.vs_autopilot),
+        smoothed = report.smoothed.get(stream.key)
+        for name, result, smoothed_result in (
+            (
+                "truth (SIMSTATE)",
+                stream.vs_truth.result(),
+                smoothed.vs_truth if smoothed is not None else None,
+            ),
+            (
+                "autopilot ATTITUDE",
+                stream.vs_autopilot.result(),
+                smoothed.vs_autopilot if smoothed is not None else None,
+            ),
         ):
-            result = comparison.result()
-            if result.count:
-                described = result.describe(stream.estimator.heading_referenced)
-                lines.append(f"    vs {name} after {settle:g} s: {described}")
+            for who, scored in (("", result), ("smoothed ", smoothed_result)):
+                if scored is not None and scored.count:
+                    described = scored.describe(stream.estimator.heading_referenced)
+                    lines.append(f"    {who}vs {name} after {settle:g} s: {described}")
+        if smoothed is not None:
+            lines.append(f"    smoothed: {len(smoothed)} samples, given the whole log")
+    if report.smoothing_skipped:
+        lines.append(f"  {report.smoothing_skipped}")
     if pipeline.ignored_imu:
         ignored = ", ".join(f"{n} from system {s}" for s, n in sorted(pipeline.ignored_imu.items()))
         lines.append(f"  IMU messages ignored (systems not followed): {ignored}")

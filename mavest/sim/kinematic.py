@@ -40,6 +40,8 @@ class ImuNoise:
     gyro_bias_sigma: float = math.radians(0.5)  # rad/s, initial bias spread per axis
     accel_noise_density: float = 0.02  # m/s²/√Hz
     mag_heading_noise_density: float = 0.08  # rad·√s, the field's azimuth
+    # white gyro noise of density this × |ω| on top (scale and alignment errors)
+    gyro_scale_noise_density: float = 0.0  # √s
 
     @classmethod
     def matching(cls, config: EstimatorConfig) -> ImuNoise:
@@ -50,6 +52,7 @@ class ImuNoise:
             config.initial_bias_sigma,
             config.accel_noise_density,
             config.mag_heading_noise_density,
+            config.gyro_scale_noise_density,
         )
 
 
@@ -74,6 +77,9 @@ class Motion:
     max_period: float = 20.0
     velocity_sigma: float = 0.0  # m/s
     velocity_time: float = 1.0  # s
+    # (start time s, σ m/s) pairs: from each start on, the velocity's level is that σ
+    # (it moves there with the correlation time); empty: velocity_sigma throughout
+    velocity_levels: tuple[tuple[float, float], ...] = ()
     burst_magnitude: float = 0.0
     burst_duration: float = 1.0
     burst_interval: float = 10.0
@@ -144,15 +150,19 @@ def _body_rates(angles: np.ndarray, rates: np.ndarray) -> np.ndarray:
 
 
 def _velocity(t: np.ndarray, rng: np.random.Generator, motion: Motion) -> np.ndarray:
-    """A Gauss–Markov velocity per world axis (what the filter assumes); zero if σ = 0."""
+    """A Gauss–Markov velocity per world axis (what the filter assumes); zero if σ = 0.
+    With ``velocity_levels`` its σ changes over the flight."""
     n = len(t)
-    if motion.velocity_sigma <= 0.0 or n < 2:
+    sigma = np.full(n, motion.velocity_sigma)
+    for start, level in motion.velocity_levels:
+        sigma[t >= start] = level
+    if not np.any(sigma > 0.0) or n < 2:
         return np.zeros((n, 3))
     dt = np.diff(t)
     gamma = np.exp(-dt / motion.velocity_time)
-    xi = rng.normal(0.0, 1.0, (n - 1, 3)) * (motion.velocity_sigma * np.sqrt(1 - gamma**2))[:, None]
+    xi = rng.normal(0.0, 1.0, (n - 1, 3)) * (sigma[1:] * np.sqrt(1 - gamma**2))[:, None]
     v = np.empty((n, 3))
-    v[0] = rng.normal(0.0, motion.velocity_sigma, 3)
+    v[0] = rng.normal(0.0, sigma[0], 3)
     for i in range(1, n):
         v[i] = gamma[i - 1] * v[i - 1] + xi[i - 1]
     return v
@@ -234,7 +244,10 @@ def simulate(
     steps = rng.normal(0.0, noise.gyro_bias_random_walk * math.sqrt(dt), (n - 1, 3))
     bias[1:] = bias[0] + np.cumsum(steps, axis=0)
 
-    gyro = omega + bias + rng.normal(0.0, noise.gyro_noise_density / math.sqrt(dt), (n, 3))
+    density = np.sqrt(
+        noise.gyro_noise_density**2 + noise.gyro_scale_noise_density**2 * np.sum(omega**2, axis=1)
+    )
+    gyro = omega + bias + rng.normal(0.0, 1.0, (n, 3)) * (density / math.sqrt(dt))[:, None]
     velocity = _velocity(t, rng, motion)
     linear = _bursts(t, rng, motion)
     linear[1:] += np.diff(velocity, axis=0) / np.diff(t)[:, None]  # held over each sample

@@ -1,7 +1,8 @@
 """The default layout of a mavest recording: readable without clicking.
 
 Left, the vehicle in 3-D as mavest, the autopilot and the truth see it. Right,
-roll, pitch and yaw (ours with its ±3σ band, the autopilot's, the truth), and
+roll, pitch and yaw (ours with its ±3σ band, the smoothed one with its band after a
+``replay --smooth``, the autopilot's, the truth), and
 below them tabs for the errors, the gyro bias, the accelerometer update (NIS
 against its χ² band, innovation, accepted/disturbed), the raw IMU and the
 per-sample processing time.
@@ -29,7 +30,7 @@ def _series(origin: str, name: str) -> rrb.TimeSeriesView:
 def stream_layout(root: str) -> rrb.Horizontal:
     """The views of one IMU stream (root as in :func:`mavest.viz.recorder.stream_root`)."""
     attitude = rrb.Vertical(
-        _series(f"{root}/attitude/roll", "roll (°): mavest ±3σ, autopilot, truth"),
+        _series(f"{root}/attitude/roll", "roll (°): mavest ±3σ, smoothed ±3σ, autopilot, truth"),
         _series(f"{root}/attitude/pitch", "pitch (°)"),
         _series(f"{root}/attitude/yaw", "yaw (°): from the magnetometer, free (6-D) without one"),
     )

@@ -19,7 +19,10 @@ Per IMU stream (root ``vehicle_<sys>_<comp>/<message>_<instance>``):
   that not one rejection is hidden by the thinning;
 - ``timing/processing_us``: decode to estimate, per sample;
 - ``world/<root>/{mavest,autopilot,truth}``: the vehicle body in 3-D (NED),
-  side by side, posed at up to ``pose_rate`` Hz.
+  side by side, posed at up to ``pose_rate`` Hz;
+- with ``replay --smooth``, once the log is replayed: ``attitude/{roll,pitch,yaw}/smoothed``
+  (the smoothed estimate, at every sample) and ``…/smoothed_3sigma`` (its ±3σ, at up
+  to ``slow_rate``), beside the online estimate, on ``vehicle_time`` only.
 
 Two timelines: ``vehicle_time`` (the flight controller's clock, s since boot)
 and ``receive_time`` (when the sample arrived; the tlog's record time on replay).
@@ -60,6 +63,8 @@ COLORS = {
     "autopilot": (255, 127, 14),
     "truth": (44, 160, 44),
     "bound": (150, 190, 230),
+    "smoothed": (148, 103, 189),
+    "smoothed_bound": (205, 185, 225),
 }
 # Where each body sits in the 3-D view (m, NED), so the three do not overlap.
 BODY_OFFSETS = {"mavest": (0.0, 0.0, 0.0), "autopilot": (0.0, 3.0, 0.0), "truth": (0.0, -3.0, 0.0)}
@@ -329,6 +334,35 @@ class RerunRecorder:
                     bool(starts_pose[i]),
                 )
             )
+
+    def on_smoothed(self, stream: Any, t: np.ndarray, euler: np.ndarray, sigma: np.ndarray) -> None:
+        """A stream's smoothed estimate, whole (after a replay): its (N,) times, (N, 3)
+        ZYX angles and their 1σ (rad), sent at once in batches of ``batch_rows``."""
+        root = self._buffer(stream).root
+        rec = self.recording
+        bound = COLORS["smoothed_bound"]
+        for axis in ("roll", "pitch", "yaw"):
+            entity = f"{root}/attitude/{axis}/smoothed"
+            rec.log(
+                entity, rr.SeriesLines(colors=[COLORS["smoothed"]], names=["smoothed"]), static=True
+            )
+            rec.log(
+                f"{entity}_3sigma",
+                rr.SeriesLines(colors=[bound, bound], names=["smoothed +3σ", "smoothed −3σ"]),
+                static=True,
+            )
+        # the band as the online one: the first sample of each slow_rate slot
+        starts_slow, _ = self._slots().advance_many(t)
+        for start in range(0, t.shape[0], self.batch_rows):
+            part = slice(start, start + self.batch_rows)
+            angle = np.degrees(euler[part])
+            slow = np.flatnonzero(starts_slow[part])
+            band = 3.0 * np.degrees(sigma[part][slow])
+            index, slow_index = self._index(t[part], None), self._index(t[part][slow], None)
+            for i, axis in enumerate(("roll", "pitch", "yaw")):
+                self._send(f"{root}/attitude/{axis}/smoothed", index, angle[:, i])
+                bounds = np.column_stack([angle[slow, i] + band[:, i], angle[slow, i] - band[:, i]])
+                self._send(f"{root}/attitude/{axis}/smoothed_3sigma", slow_index, bounds)
 
     def _pack(self, buffer: _StreamBuffer) -> None:
         """The rows made into a block; the batch sent when full or old enough."""

@@ -1,0 +1,309 @@
+"""The smoother's per-sample fusion, compiled (docs/design.md#smoothing).
+
+One pass over a block of samples: the backward filter's prior at each sample (its
+estimate one sample later, predicted one gyro step back, where it updated there),
+then the Kalman update of the forward estimate by that prior's attitude, in the
+left error's world frame and the heading-tilt chart. :mod:`mavest.estimator.smoother`
+runs the passes and decides which samples are fused.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mavest import so3
+from mavest._jit import kernel
+from mavest.estimator.charts import chart_log_into, retract_into
+from mavest.estimator.layout import CHART_HEADING_TILT, ERROR_LEFT
+
+
+@kernel
+def _attitude_to_world(q: np.ndarray, P: np.ndarray, R: np.ndarray, out: np.ndarray) -> None:
+    """out (3 × 3) = R P_θθ Rᵀ, the attitude block of a body-frame (right error)
+    covariance in the world frame, R the attitude's matrix."""
+    so3.matrix_from_quat_into(q, R)
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                for m in range(3):
+                    total += R[i, k] * P[k, m] * R[j, m]
+            out[i, j] = total
+
+
+@kernel
+def _predicted_attitude(
+    q: np.ndarray,
+    bias: np.ndarray,
+    P: np.ndarray,
+    gyro: np.ndarray,
+    dt: float,
+    gyro_noise_density: float,
+    gyro_scale_noise_density: float,
+    gyro_bias_random_walk: float,
+    q_out: np.ndarray,
+    P_out: np.ndarray,
+    work: np.ndarray,
+) -> None:
+    """The filter's prediction by one sample (docs/design.md#prediction), left error, of
+    the attitude and its 3 × 3 covariance: q ⊗ Exp((ω − b) Δt) and, with
+    G = −R J_l(φ) Δt, P_θθ + G P_bθ + P_θb Gᵀ + G P_bb Gᵀ + (σ² Δt + σ_b² Δt³/3) I,
+    σ² = σ_g² + σ_s² |ω − b|² (the rate noise, its part ∝ the rate included)."""
+    phi = work[0, :3]
+    for i in range(3):
+        phi[i] = (gyro[i] - bias[i]) * dt
+    turn = work[1]
+    so3.quat_exp_into(phi, turn)
+    so3.quat_multiply_into(q, turn, q_out)
+    so3.quat_normalize_into(q_out)
+    R = work[2:5, :3]
+    J = work[5:8, :3]
+    so3.matrix_from_quat_into(q, R)
+    so3.left_jacobian_into(phi, J)
+    G = work[8:11, :3]
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                total += R[i, k] * J[k, j]
+            G[i, j] = -total * dt
+    # GP = G P_bθ (3 × 3)
+    GP = work[11:14, :3]
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                total += G[i, k] * P[3 + k, j]
+            GP[i, j] = total
+    rate_sq = (phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]) / (dt * dt)
+    var_g = gyro_noise_density**2 + gyro_scale_noise_density**2 * rate_sq
+    noise = var_g * dt + gyro_bias_random_walk**2 * dt**3 / 3.0
+    for i in range(3):
+        for j in range(3):
+            total = P[i, j] + GP[i, j] + GP[j, i]
+            for k in range(3):
+                for m in range(3):
+                    total += G[i, k] * P[3 + k, 3 + m] * G[j, m]
+            P_out[i, j] = total + (noise if i == j else 0.0)
+
+
+@kernel
+def fuse_block(
+    q_f: np.ndarray,
+    b_f: np.ndarray,
+    P_f: np.ndarray,
+    q_b: np.ndarray,
+    b_b: np.ndarray,
+    P_b: np.ndarray,
+    q_after: np.ndarray,
+    b_after: np.ndarray,
+    P_after: np.ndarray,
+    gyro_next: np.ndarray,
+    dt: np.ndarray,
+    fused: np.ndarray,
+    measured: np.ndarray,
+    heading: np.ndarray,
+    right: bool,
+    gyro_noise_density: float,
+    gyro_scale_noise_density: float,
+    gyro_bias_random_walk: float,
+) -> None:
+    """Smooth the forward estimates q_f, b_f, P_f (n samples, time order) in place.
+
+    The backward pass's estimates q_b, b_b, P_b are in its own order (sample k of the
+    block is its row n − 1 − k); its estimate at the sample after the block is q_after,
+    b_after, P_after. Per sample k with ``fused[k]``: the backward prior is its
+    estimate at k, or, where it ``measured`` at k, its estimate at k + 1 predicted back
+    by ``gyro_next[k]`` (its gyro over (t_k, t_k+1]) and ``dt[k]``. Its attitude is a
+    measurement of the forward error, d = chart⁻¹(q_b q_f⁻¹) in the heading-tilt chart:
+    all three components where ``heading[k]`` (both passes reference heading), else its
+    tilt (τx, τy) with its covariance turned by Rz(−ψ) onto the forward heading. ``right``:
+    the covariances are the right error's (body frame), as the filter's output then is.
+    """
+    n = q_f.shape[0]
+    prior_q = np.empty(4)
+    error = np.empty(4)
+    conjugate = np.empty(4)
+    work4 = np.empty(4)
+    d = np.empty(3)
+    x = np.empty(6)
+    Pb = np.empty((3, 3))
+    S = np.empty((3, 3))
+    S_inverse = np.empty((3, 3))
+    K = np.empty((6, 3))
+    Pw = np.empty((6, 6))
+    A = np.empty((6, 6))
+    R = np.empty((3, 3))
+    work = np.empty((14, 4))
+    for k in range(n):
+        if not fused[k]:
+            continue
+        j = n - 1 - k
+        # the backward prior's attitude and its covariance (world frame)
+        if measured[k]:
+            if k + 1 < n:
+                q_next, b_next, P_next = q_b[j - 1], b_b[j - 1], P_b[j - 1]
+            else:
+                q_next, b_next, P_next = q_after, b_after, P_after
+            if right:  # to the left error: P_θb ← R P_θb, P_θθ ← R P_θθ Rᵀ
+                so3.matrix_from_quat_into(q_next, R)
+                for r in range(6):
+                    for c in range(6):
+                        A[r, c] = P_next[r, c]
+                for r in range(3):
+                    for c in range(6):
+                        total = 0.0
+                        for m in range(3):
+                            total += R[r, m] * P_next[m, c]
+                        A[r, c] = total
+                for r in range(6):
+                    for c in range(3):
+                        total = 0.0
+                        for m in range(3):
+                            total += A[r, m] * R[c, m]
+                        Pw[r, c] = total
+                    for c in range(3, 6):
+                        Pw[r, c] = A[r, c]
+                P_next = Pw
+            _predicted_attitude(
+                q_next,
+                b_next,
+                P_next,
+                gyro_next[k],
+                dt[k],
+                gyro_noise_density,
+                gyro_scale_noise_density,
+                gyro_bias_random_walk,
+                prior_q,
+                Pb,
+                work,
+            )
+        else:
+            for i in range(4):
+                prior_q[i] = q_b[j, i]
+            if right:
+                _attitude_to_world(q_b[j], P_b[j], R, Pb)
+            else:
+                for r in range(3):
+                    for c in range(3):
+                        Pb[r, c] = P_b[j, r, c]
+        # the forward covariance in the world frame
+        if right:
+            so3.matrix_from_quat_into(q_f[k], R)
+            for r in range(6):
+                for c in range(6):
+                    A[r, c] = P_f[k, r, c]
+            for r in range(3):
+                for c in range(6):
+                    total = 0.0
+                    for m in range(3):
+                        total += R[r, m] * P_f[k, m, c]
+                    A[r, c] = total
+            for r in range(6):
+                for c in range(3):
+                    total = 0.0
+                    for m in range(3):
+                        total += A[r, m] * R[c, m]
+                    Pw[r, c] = total
+                for c in range(3, 6):
+                    Pw[r, c] = A[r, c]
+        else:
+            for r in range(6):
+                for c in range(6):
+                    Pw[r, c] = P_f[k, r, c]
+        # d = chart⁻¹(q_b q_f⁻¹)
+        so3.quat_conjugate_into(q_f[k], conjugate)
+        so3.quat_multiply_into(prior_q, conjugate, error)
+        chart_log_into(error, CHART_HEADING_TILT, d)
+        if heading[k]:
+            m = 3
+            for r in range(3):
+                for c in range(3):
+                    S[r, c] = Pw[r, c] + Pb[r, c]
+        else:
+            m = 2
+            cz, sz = math.cos(d[2]), math.sin(d[2])
+            xx, xy, yy = Pb[0, 0], Pb[0, 1], Pb[1, 1]
+            S[0, 0] = Pw[0, 0] + cz * cz * xx + 2.0 * cz * sz * xy + sz * sz * yy
+            S[1, 1] = Pw[1, 1] + sz * sz * xx - 2.0 * cz * sz * xy + cz * cz * yy
+            S[0, 1] = Pw[0, 1] + (cz * cz - sz * sz) * xy + cz * sz * (yy - xx)
+            S[1, 0] = S[0, 1]
+        _symmetric_inverse(S, m, S_inverse)
+        # K = P Hᵀ S⁻¹ (6 × m), x = K d, P ← P − K H P
+        for r in range(6):
+            for c in range(m):
+                total = 0.0
+                for i in range(m):
+                    total += Pw[r, i] * S_inverse[i, c]
+                K[r, c] = total
+        for r in range(6):
+            total = 0.0
+            for c in range(m):
+                total += K[r, c] * d[c]
+            x[r] = total
+        for r in range(6):
+            for c in range(r, 6):
+                total = 0.0
+                for i in range(m):
+                    total += K[r, i] * Pw[c, i]
+                A[r, c] = total
+        for r in range(6):
+            for c in range(r, 6):
+                value = 0.5 * ((Pw[r, c] - A[r, c]) + (Pw[c, r] - A[r, c]))
+                Pw[r, c] = value
+                Pw[c, r] = value
+        # the fused error into the forward reference
+        for i in range(4):
+            prior_q[i] = q_f[k, i]
+        retract_into(prior_q, x[:3], ERROR_LEFT, CHART_HEADING_TILT, q_f[k], work4)
+        for i in range(3):
+            b_f[k, i] += x[3 + i]
+        if right:  # back to the body frame of the smoothed attitude: Rᵀ P_θθ R, Rᵀ P_θb
+            so3.matrix_from_quat_into(q_f[k], R)
+            for r in range(3):
+                for c in range(6):
+                    total = 0.0
+                    for i in range(3):
+                        total += R[i, r] * Pw[i, c]
+                    A[r, c] = total
+            for r in range(3, 6):
+                for c in range(6):
+                    A[r, c] = Pw[r, c]
+            for r in range(6):
+                for c in range(3):
+                    total = 0.0
+                    for i in range(3):
+                        total += A[r, i] * R[i, c]
+                    P_f[k, r, c] = total
+                for c in range(3, 6):
+                    P_f[k, r, c] = A[r, c]
+            for r in range(6):  # (symmetric to rounding; made exactly so)
+                for c in range(r + 1, 6):
+                    value = 0.5 * (P_f[k, r, c] + P_f[k, c, r])
+                    P_f[k, r, c] = value
+                    P_f[k, c, r] = value
+        else:
+            for r in range(6):
+                for c in range(6):
+                    P_f[k, r, c] = Pw[r, c]
+
+
+@kernel
+def _symmetric_inverse(S: np.ndarray, m: int, out: np.ndarray) -> None:
+    """out[:m, :m] = S[:m, :m]⁻¹ for a symmetric positive definite 2 × 2 or 3 × 3."""
+    if m == 2:
+        det = S[0, 0] * S[1, 1] - S[0, 1] * S[0, 1]
+        out[0, 0] = S[1, 1] / det
+        out[1, 1] = S[0, 0] / det
+        out[0, 1] = out[1, 0] = -S[0, 1] / det
+        return
+    a, b, c = S[0, 0], S[0, 1], S[0, 2]
+    e, f, i = S[1, 1], S[1, 2], S[2, 2]
+    A, B, C = e * i - f * f, c * f - b * i, b * f - c * e
+    det = a * A + b * B + c * C
+    out[0, 0], out[1, 1], out[2, 2] = A / det, (a * i - c * c) / det, (a * e - b * b) / det
+    out[0, 1] = out[1, 0] = B / det
+    out[0, 2] = out[2, 0] = C / det
+    out[1, 2] = out[2, 1] = (b * c - a * f) / det

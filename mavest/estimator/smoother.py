@@ -1,0 +1,188 @@
+"""Offline smoothing: each sample's attitude and bias given the whole recording.
+
+A two-filter smoother (Fraser & Potter 1969; Simon 2006, ch. 9; the design is
+docs/design.md#smoothing). The forward pass is :func:`estimate`; the backward pass is
+the same filter run over the time-reversed recording, in which the attitude
+kinematics read dR/ds = R[−ω]×: the gyroscope negated, accelerometer, magnetometer
+and known acceleration unchanged, so the backward filter's bias is −b. At each sample
+the forward estimate (after that sample's update) is updated with the backward
+filter's *prior* attitude there (before that sample's update: its estimate one sample
+later in time, predicted one gyro step back), so that no sample's measurement counts
+twice, and with its attitude alone: the bias is the forward pass's, corrected through
+its correlation with the attitude (fusing the biases too is better on simulated
+flights, whose noise is the filter's model, and worse on BROAD's real recordings).
+
+Without a referenced heading in both passes (6-D), heading is not observed and the
+backward pass's heading is an arbitrary frame of its own: it is turned onto the
+forward heading and only its tilt is used. With both referenced (9-D) tilt and
+heading are.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from mavest.estimator.config import EstimatorConfig
+from mavest.estimator.estimator import EstimateSeries, Estimator, estimate
+from mavest.estimator.fusion import fuse_block
+from mavest.estimator.layout import StepFlags
+
+# Samples whose estimate is a placeholder or a held copy of an earlier one.
+_NO_ESTIMATE = StepFlags.NOT_INITIALISED | StepFlags.SKIPPED
+# Samples at which a pass starts afresh from that sample's accelerometer: its
+# estimate there holds no earlier sample's attitude information, and its prior
+# (the estimate before the sample) is not that of the estimate it holds.
+_RESTARTS = (
+    StepFlags.INITIALISED
+    | StepFlags.GAP_REALIGNED
+    | StepFlags.UNHEALTHY_RESET
+    | StepFlags.DIVERGED
+    | StepFlags.CLIP_REALIGNED
+    | StepFlags.TIME_RESTARTED
+)
+# Backward samples are run and fused in blocks of this many: what the smoother holds
+# beyond the forward estimates (the backward pass's estimates and inputs, about 0.5 kB
+# a sample), whatever the length of the recording.
+BLOCK = 1 << 13
+
+
+def smooth(
+    t: ArrayLike,
+    gyro: ArrayLike,
+    accel: ArrayLike,
+    mag: ArrayLike | None = None,
+    config: EstimatorConfig | None = None,
+    linear_accel: ArrayLike | None = None,
+) -> EstimateSeries:
+    """Each sample's attitude and bias given the whole recording.
+
+    The same arguments, validation and :class:`~mavest.estimator.estimator.InputError`
+    as :func:`estimate`, and the same fields and conventions in the result: ``q``,
+    ``bias`` and ``cov`` smoothed; ``flags`` and the update diagnostics (innovation,
+    NIS, ``accel_used``, ...) those of the forward pass, which is :func:`estimate`'s.
+    Where the forward pass has no estimate (not initialised, skipped samples) or the
+    backward pass has none to fuse (see :func:`smooth_forward`), the forward estimate
+    is returned unchanged.
+    """
+    config = config if config is not None else EstimatorConfig()
+    forward = estimate(t, gyro, accel, mag, config, linear_accel)
+    return smooth_forward(forward, t, gyro, accel, mag, config, linear_accel)
+
+
+def smooth_forward(
+    forward: EstimateSeries,
+    t: ArrayLike,
+    gyro: ArrayLike,
+    accel: ArrayLike,
+    mag: ArrayLike | None = None,
+    config: EstimatorConfig | None = None,
+    linear_accel: ArrayLike | None = None,
+    backward_start: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
+) -> EstimateSeries:
+    """Smooth a forward pass already run over these samples with this configuration
+    (e.g. one started from a known state with :meth:`Estimator.initialise`).
+
+    ``forward``'s q, bias and cov arrays are overwritten with the smoothed ones (a
+    recording's estimates are most of what smoothing holds in memory; this way it
+    holds them once) and it is returned. ``backward_start``: (q, bias, cov) known at
+    the time of the forward pass's last estimate (as :meth:`Estimator.initialise`
+    takes them, bias and cov in the forward sense), from which the backward pass starts
+    instead of aligning on that sample; its own measurements are then not used
+    backward. With ``linear_accel`` it starts so from the forward pass's last attitude.
+
+    A sample is fused where the forward pass has an estimate and the backward pass a
+    prior: not where either has none (not initialised, skipped), nor where the
+    backward pass restarts (initialisation, re-alignment after a gap or a clipped
+    gyro, reset after a failed health check, a restarted clock): its prior there is
+    not that of its estimate. Gaps and resets need no other splitting: each pass's
+    covariance already says what it knows across them.
+    """
+    config = config if config is not None else EstimatorConfig()
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    n = t.shape[0]
+    has_forward = (forward.flags & _NO_ESTIMATE) == 0
+    if n == 0 or not np.any(has_forward):
+        return forward
+    gyro = np.asarray(gyro, dtype=np.float64)
+    accel = np.asarray(accel, dtype=np.float64)
+    mag_array = None if mag is None else np.asarray(mag, dtype=np.float64)
+    linear = None if linear_accel is None else np.asarray(linear_accel, dtype=np.float64)
+    # Reversed time, increasing: t' = t_last − t, t_last a time the forward pass took
+    # (a corrupt timestamp elsewhere is then far off the backward timeline as well).
+    last = np.flatnonzero(has_forward)[-1]
+    t_last = t[last]
+    heading_known = (forward.flags & StepFlags.HEADING_ALIGNED) != 0
+    forward_heading = np.logical_or.accumulate(heading_known | forward.mag_used)
+    backward = Estimator(config.replace(initial_bias=tuple(-np.asarray(config.initial_bias))))
+    if backward_start is None and linear is not None and np.any(np.isfinite(linear)):
+        # The known acceleration is in the world frame: removing it needs the heading,
+        # which a pass aligned on one sample has not (0, where the forward pass's came
+        # from the aiding itself). The backward pass starts at the forward pass's last
+        # attitude instead, with the configured initial uncertainty: its value is
+        # taken, not its certainty, and only tilt is fused without a magnetometer.
+        initial = np.diag(
+            [config.initial_tilt_sigma**2] * 2
+            + [config.initial_heading_sigma**2]
+            + [config.initial_bias_sigma**2] * 3
+        )
+        backward_start = (forward.q[last], np.asarray(config.initial_bias), initial)
+    if backward_start is not None:
+        q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
+        flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
+        backward.initialise(0.0, q0, -b0, flip @ P0 @ flip)
+    right = config.error == "right"
+    backward_heading = False
+    # the backward estimate at the sample after the block (its next block's first)
+    after_flags = StepFlags.NOT_INITIALISED
+    after_q, after_b, after_P = np.zeros(4), np.zeros(3), np.zeros((6, 6))
+    for hi in range(n, 0, -BLOCK):
+        lo = max(0, hi - BLOCK)
+        order = np.arange(hi - 1, lo - 1, -1)
+        # the gyro sample that covers (t_k, t_k+1] is t_k+1's: the backward pass,
+        # stepping from t_k+1 back to t_k, takes that one
+        following = np.minimum(order + 1, n - 1)
+        out = backward.update_batch(
+            t_last - t[order],
+            -gyro[following],
+            accel[order],
+            None if mag_array is None else mag_array[order],
+            None if linear is None else linear[order],
+        )
+        referenced = ((out.flags & StepFlags.HEADING_ALIGNED) != 0) | out.mag_used
+        referenced[0] |= backward_heading
+        backward_heading_at = np.logical_or.accumulate(referenced)[::-1]
+        backward_heading = bool(backward_heading_at[0])
+        # in time order from here
+        flags_b = out.flags[::-1]
+        flags_next = np.append(flags_b[1:], after_flags)
+        measured = ((flags_b & StepFlags.BETWEEN_UPDATES) == 0) | out.mag_used[::-1]
+        fused = (
+            has_forward[lo:hi]
+            & ((flags_b & (_NO_ESTIMATE | _RESTARTS)) == 0)
+            & (~measured | ((flags_next & _NO_ESTIMATE) == 0))
+        )
+        following = following[::-1]
+        fuse_block(
+            forward.q[lo:hi],
+            forward.bias[lo:hi],
+            forward.cov[lo:hi],
+            out.q,
+            out.bias,
+            out.cov,
+            after_q,
+            after_b,
+            after_P,
+            -gyro[following],
+            t[following] - t[lo:hi],
+            fused,
+            measured,
+            forward_heading[lo:hi] & backward_heading_at,
+            right,
+            config.gyro_noise_density,
+            config.gyro_scale_noise_density,
+            config.gyro_bias_random_walk,
+        )
+        after_flags = out.flags[-1]
+        after_q, after_b, after_P = out.q[-1].copy(), out.bias[-1].copy(), out.cov[-1].copy()
+    return forward

@@ -1,0 +1,401 @@
+"""mavest.smooth: each sample's attitude given the whole recording.
+
+Scored against the simulator's truth; the fusion is checked against a plain
+per-sample reference written with scipy (tests/reference.py's charts).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import reference
+from scipy.spatial.transform import Rotation
+from tool_module import load_tool
+
+import mavest
+from mavest import EstimatorConfig, StepFlags, estimate, smooth
+from mavest.estimator import InputError, smoother
+from mavest.estimator.estimator import Estimator
+from mavest.evaluation.consistency import SCENARIOS, chi2_band, monte_carlo
+from mavest.evaluation.metrics import attitude_errors
+from mavest.sim import Motion, simulate
+from mavest.so3 import euler_zyx_from_quats
+
+G = 9.80665
+
+
+def _yaw(q: np.ndarray) -> np.ndarray:
+    return euler_zyx_from_quats(q)[:, 2]
+
+
+def _rms_deg(x: np.ndarray) -> float:
+    return float(np.degrees(np.sqrt(np.mean(x**2))))
+
+
+@pytest.fixture(scope="module")
+def flight() -> object:
+    return simulate(60.0, 100.0, seed=3)
+
+
+@pytest.mark.parametrize("with_mag", [False, True], ids=["6d", "9d"])
+def test_smoothed_error_is_below_the_filtered(flight, with_mag: bool) -> None:
+    mag = flight.mag if with_mag else None
+    forward = estimate(flight.t, flight.gyro, flight.accel, mag)
+    smoothed = smooth(flight.t, flight.gyro, flight.accel, mag)
+    f = attitude_errors(forward.q, flight.q_true)
+    s = attitude_errors(smoothed.q, flight.q_true)
+    assert _rms_deg(s.inclination) < 0.75 * _rms_deg(f.inclination)
+    # the first seconds, where the forward pass has seen little
+    first = flight.t < 5.0
+    assert _rms_deg(s.inclination[first]) < 0.6 * _rms_deg(f.inclination[first])
+    # the bias is the forward pass's, corrected through its correlation with attitude
+    bias_f = _rms_deg(forward.bias - flight.bias_true)
+    bias_s = _rms_deg(smoothed.bias - flight.bias_true)
+    assert bias_s < bias_f
+    if with_mag:
+        assert _rms_deg(s.heading) < _rms_deg(f.heading)
+    else:
+        # heading keeps the forward pass's frame (the backward pass's own heading, an
+        # arbitrary one, would be tens of degrees off it) and drifts as the forward's
+        def drift(q: np.ndarray) -> np.ndarray:
+            yaw = _yaw(q) - _yaw(flight.q_true)
+            return np.angle(np.exp(1j * (yaw - yaw[0])))
+
+        assert _rms_deg(drift(smoothed.q)) < 1.2 * _rms_deg(drift(forward.q))
+
+
+@pytest.mark.parametrize("with_mag", [False, True], ids=["6d", "9d"])
+def test_smoothed_covariance_is_below_the_filtered(flight, with_mag: bool) -> None:
+    mag = flight.mag if with_mag else None
+    forward = estimate(flight.t, flight.gyro, flight.accel, mag)
+    smoothed = smooth(flight.t, flight.gyro, flight.accel, mag)
+    assert np.all(np.isfinite(smoothed.cov))
+    np.testing.assert_array_equal(smoothed.cov, np.swapaxes(smoothed.cov, 1, 2))
+    assert np.linalg.eigvalsh(smoothed.cov).min() > 0.0
+    scale = np.trace(forward.cov, axis1=1, axis2=2)
+    gap = np.linalg.eigvalsh(forward.cov - smoothed.cov).min(axis=1)
+    assert np.all(gap >= -1e-7 * scale)
+    # and much smaller where the forward pass knows little (its first seconds)
+    first = flight.t < 5.0
+    tilt_f = forward.cov[first, 0, 0] + forward.cov[first, 1, 1]
+    tilt_s = smoothed.cov[first, 0, 0] + smoothed.cov[first, 1, 1]
+    assert np.all(tilt_s[1:] < 0.7 * tilt_f[1:])
+
+
+def test_smooth_is_exported_and_keeps_the_forward_flags(flight) -> None:
+    assert mavest.smooth is smooth
+    forward = estimate(flight.t, flight.gyro, flight.accel)
+    smoothed = smooth(flight.t, flight.gyro, flight.accel)
+    np.testing.assert_array_equal(smoothed.flags, forward.flags)
+    np.testing.assert_array_equal(smoothed.nis, forward.nis)
+    np.testing.assert_allclose(np.linalg.norm(smoothed.q, axis=1), 1.0, atol=1e-12)
+    assert np.all(smoothed.q[:, 0] >= 0.0)
+    assert smoothed.euler.shape == (len(flight.t), 3)
+
+
+# --- a plain reference of the whole method ------------------------------------------
+
+
+def _left_jacobian(phi: np.ndarray) -> np.ndarray:
+    theta = np.linalg.norm(phi)
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * K + K @ K / 6.0
+    return (
+        np.eye(3)
+        + (1 - math.cos(theta)) / theta**2 * K
+        + (theta - math.sin(theta)) / theta**3 * K @ K
+    )
+
+
+def _rotation(q: np.ndarray) -> Rotation:
+    return Rotation.from_quat([q[1], q[2], q[3], q[0]])
+
+
+def _quat(r: Rotation) -> np.ndarray:
+    x, y, z, w = r.as_quat()
+    q = np.array([w, x, y, z])
+    return q if w >= 0 else -q
+
+
+def slow_smooth(t, gyro, accel, mag, config: EstimatorConfig):
+    """The smoother, one sample at a time, with scipy rotations and matrix inverses."""
+    n = len(t)
+    forward = estimate(t, gyro, accel, mag, config)
+    done = (forward.flags & (StepFlags.NOT_INITIALISED | StepFlags.SKIPPED)) == 0
+    t_last = t[np.flatnonzero(done)[-1]]
+    back_config = config.replace(initial_bias=tuple(-np.asarray(config.initial_bias)))
+    rev = np.arange(n - 1, -1, -1)
+    back = Estimator(back_config).update_batch(
+        t_last - t[rev],
+        -gyro[np.minimum(rev + 1, n - 1)],
+        accel[rev],
+        None if mag is None else mag[rev],
+    )
+    bflags, bq, bb, bP = back.flags[::-1], back.q[::-1], back.bias[::-1], back.cov[::-1]
+    bmag = back.mag_used[::-1]
+    restarts = (
+        StepFlags.INITIALISED
+        | StepFlags.GAP_REALIGNED
+        | StepFlags.UNHEALTHY_RESET
+        | StepFlags.DIVERGED
+        | StepFlags.CLIP_REALIGNED
+        | StepFlags.TIME_RESTARTED
+    )
+    none = StepFlags.NOT_INITIALISED | StepFlags.SKIPPED
+    q_out, b_out, P_out = forward.q.copy(), forward.bias.copy(), forward.cov.copy()
+    sg2, sb2 = config.gyro_noise_density**2, config.gyro_bias_random_walk**2
+    ss2 = config.gyro_scale_noise_density**2  # × |ω|²: the rate noise's part ∝ the rate
+    f_heading = b_heading = False
+    b_heading_at = np.zeros(n, dtype=bool)
+    for k in range(n - 1, -1, -1):
+        b_heading = b_heading or bool(bflags[k] & StepFlags.HEADING_ALIGNED) or bmag[k]
+        b_heading_at[k] = b_heading
+    for k in range(n):
+        f_heading = f_heading or bool(forward.flags[k] & StepFlags.HEADING_ALIGNED)
+        f_heading = f_heading or bool(forward.mag_used[k])
+        if forward.flags[k] & none or bflags[k] & (none | restarts):
+            continue
+        measured = not (bflags[k] & StepFlags.BETWEEN_UPDATES) or bmag[k]
+        R_b, P_b = _rotation(bq[k]), bP[k]
+        if measured:  # the backward prior: its estimate at k + 1 predicted back to k
+            if k + 1 >= n or bflags[k + 1] & none:
+                continue
+            dt = t[k + 1] - t[k]
+            R0 = _rotation(bq[k + 1])
+            phi = (-gyro[k + 1] - bb[k + 1]) * dt
+            R_b = R0 * Rotation.from_rotvec(phi)
+            Phi = np.eye(6)
+            Phi[:3, 3:] = -R0.as_matrix() @ _left_jacobian(phi) * dt
+            Q = np.zeros((6, 6))
+            rate_sq = float(np.sum(phi * phi)) / dt**2
+            Q[:3, :3] = ((sg2 + ss2 * rate_sq) * dt + sb2 * dt**3 / 3) * np.eye(3)
+            Q[:3, 3:] = -0.5 * sb2 * dt**2 * R0.as_matrix()
+            Q[3:, :3] = Q[:3, 3:].T
+            Q[3:, 3:] = sb2 * dt * np.eye(3)
+            P_b = Phi @ bP[k + 1] @ Phi.T + Q
+        R_f = _rotation(forward.q[k])
+        d = reference.chart_inverse(R_b * R_f.inv(), "heading_tilt")
+        # the backward attitude's information, turned onto the forward heading in 6-D
+        both = f_heading and b_heading_at[k]
+        A = np.eye(3) if both else reference.rz(-d[2]).as_matrix()
+        dims = [0, 1, 2] if both else [0, 1]
+        R = (A @ P_b[:3, :3] @ A.T)[np.ix_(dims, dims)]
+        H = np.eye(6)[dims]
+        information = H.T @ np.linalg.inv(R) @ H
+        P = np.linalg.inv(np.linalg.inv(forward.cov[k]) + information)
+        x = P @ H.T @ np.linalg.inv(R) @ d[dims]
+        q_out[k] = _quat(reference.chart(x[:3], "heading_tilt") * R_f)
+        b_out[k] = forward.bias[k] + x[3:]
+        P_out[k] = 0.5 * (P + P.T)
+    return q_out, b_out, P_out
+
+
+@pytest.mark.parametrize("scale_noise", [0.0, 0.003], ids=["white", "rate_noise"])
+@pytest.mark.parametrize("with_mag", [False, True], ids=["6d", "9d"])
+def test_smooth_agrees_with_a_slow_reference(with_mag: bool, scale_noise: float) -> None:
+    data = simulate(8.0, 100.0, seed=11)
+    mag = data.mag if with_mag else None
+    config = EstimatorConfig(
+        initial_bias=(0.001, -0.002, 0.003), gyro_scale_noise_density=scale_noise
+    )
+    q, b, P = slow_smooth(data.t, data.gyro, data.accel, mag, config)
+    out = smooth(data.t, data.gyro, data.accel, mag, config)
+    np.testing.assert_allclose(out.q, q, atol=1e-9)
+    np.testing.assert_allclose(out.bias, b, atol=1e-9)
+    np.testing.assert_allclose(out.cov, P, atol=1e-9 * np.abs(P).max())
+    # and it did fuse: most samples moved off the forward estimate
+    forward = estimate(data.t, data.gyro, data.accel, mag, config)
+    assert np.mean(np.any(out.q != forward.q, axis=1)) > 0.95
+
+
+def test_blocks_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> None:
+    data = simulate(10.0, 100.0, seed=12)
+    whole = smooth(data.t, data.gyro, data.accel, data.mag)
+    monkeypatch.setattr(smoother, "BLOCK", 37)
+    blocks = smooth(data.t, data.gyro, data.accel, data.mag)
+    for name in ("q", "bias", "cov"):
+        np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))
+
+
+def test_smooth_is_deterministic(flight) -> None:
+    a = smooth(flight.t, flight.gyro, flight.accel, flight.mag)
+    b = smooth(flight.t, flight.gyro, flight.accel, flight.mag)
+    for name in ("q", "bias", "cov"):
+        assert getattr(a, name).tobytes() == getattr(b, name).tobytes()
+
+
+def test_right_error_smooths_as_well(flight) -> None:
+    config = EstimatorConfig(error="right", chart="exp")
+    forward = estimate(flight.t, flight.gyro, flight.accel, None, config)
+    smoothed = smooth(flight.t, flight.gyro, flight.accel, None, config)
+    f = attitude_errors(forward.q, flight.q_true).inclination
+    s = attitude_errors(smoothed.q, flight.q_true).inclination
+    assert _rms_deg(s) < 0.75 * _rms_deg(f)
+
+    # body-frame errors about different attitudes: compared in the world frame
+    def world(out) -> np.ndarray:
+        A = np.zeros((len(out), 6, 6))
+        A[:, :3, :3] = Rotation.from_quat(out.q[:, [1, 2, 3, 0]]).as_matrix()
+        A[:, 3:, 3:] = np.eye(3)
+        return A @ out.cov @ np.swapaxes(A, 1, 2)
+
+    gap = np.linalg.eigvalsh(world(forward) - world(smoothed)).min(axis=1)
+    assert np.all(gap >= -1e-7 * np.trace(forward.cov, axis1=1, axis2=2))
+
+
+# --- bad input: flagged as estimate() flags it, never fatal -------------------------
+
+
+def _damaged(kind: str):
+    data = simulate(20.0, 100.0, seed=13)
+    t, gyro, accel, mag = data.t.copy(), data.gyro.copy(), data.accel.copy(), data.mag.copy()
+    if kind == "nan":
+        gyro[300:305] = np.nan
+        accel[700:720] = np.nan
+        mag[900:950] = np.nan
+        t[1200] = np.nan
+    elif kind == "time_back":
+        t[800:805] = t[800:805] - 0.5
+    elif kind == "absurd_timestamp":
+        t[1000] = 1e12
+    elif kind == "absurd_last_timestamp":
+        t[-1] = 1e12
+    elif kind == "gap":
+        t[1000:] += 30.0
+    elif kind == "restart":
+        t[1500:] -= 100.0
+    elif kind == "all_nan_accel":
+        accel[:] = np.nan
+    return data, t, gyro, accel, mag
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "nan",
+        "time_back",
+        "absurd_timestamp",
+        "absurd_last_timestamp",
+        "gap",
+        "restart",
+        "all_nan_accel",
+    ],
+)
+@pytest.mark.parametrize("with_mag", [False, True], ids=["6d", "9d"])
+def test_bad_input_is_flagged_never_fatal(kind: str, with_mag: bool) -> None:
+    data, t, gyro, accel, mag = _damaged(kind)
+    mag = mag if with_mag else None
+    forward = estimate(t, gyro, accel, mag)
+    out = smooth(t, gyro, accel, mag)
+    np.testing.assert_array_equal(out.flags, forward.flags)
+    for name in ("q", "bias", "cov"):
+        assert np.all(np.isfinite(getattr(out, name))), name
+    np.testing.assert_allclose(np.linalg.norm(out.q, axis=1), 1.0, atol=1e-12)
+    # where the forward pass has no estimate the smoother has none either
+    held = (forward.flags & (StepFlags.NOT_INITIALISED | StepFlags.SKIPPED)) != 0
+    np.testing.assert_array_equal(out.q[held], forward.q[held])
+    if kind in ("nan", "time_back", "absurd_timestamp", "gap"):
+        good = ~held & np.isfinite(t)
+        f = attitude_errors(forward.q[good], data.q_true[good]).inclination
+        s = attitude_errors(out.q[good], data.q_true[good]).inclination
+        assert _rms_deg(s) < _rms_deg(f)
+
+
+def test_accelerometer_in_g_is_refused_as_by_estimate() -> None:
+    data = simulate(5.0, 100.0, seed=14)
+    with pytest.raises(InputError):
+        smooth(data.t, data.gyro, data.accel / G)
+
+
+def test_empty_and_single_sample_inputs() -> None:
+    empty = smooth(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+    assert len(empty) == 0
+    one = smooth([0.0], [[0.0, 0.0, 0.0]], [[0.0, 0.0, -G]])
+    np.testing.assert_allclose(one.q, [[1.0, 0.0, 0.0, 0.0]])
+
+
+@pytest.mark.parametrize("name", ["small", "bursts", "small_9d"])
+def test_smoothed_covariance_is_consistent(name: str) -> None:
+    """A small Monte Carlo of the smoother (tools/consistency.py --smooth runs the full one)."""
+    scenario = next(s for s in SCENARIOS if s.name == name)
+    runs = 6
+    summary = monte_carlo([EstimatorConfig()], scenario, runs, seed=50, smoothed=True)[0]
+    lo, hi = chi2_band(6, runs, level=0.99)
+    assert lo <= summary.anees <= hi, summary
+
+
+# --- the tools ------------------------------------------------------------------------
+
+
+def test_cost_tool_prints_the_ratio_and_the_hour(capsys: pytest.CaptureFixture[str]) -> None:
+    tool = load_tool("smooth_cost")
+    assert tool.main(["--seconds", "12", "--rate", "100"]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith(("| 6-D", "| 9-D"))]
+    assert len(rows) == 2
+    assert all(float(row.split("|")[4]) > 1.0 for row in rows)  # smoothing costs more
+    assert "| estimate |" in out and "| smooth |" in out and "an hour" in out
+
+
+def test_evidence_shows_the_offline_estimates_apart() -> None:
+    evidence = load_tool("evidence")
+    online = evidence.Filters.chosen(quick=True)
+    offline = evidence.Filters.chosen(quick=True, offline=True)
+    assert offline.names == [*online.names, "mavest smoothed", "offline VQF"]
+    # an estimate that saw the future is shown, never the best of the online filters
+    assert offline.online == set(online.names)
+
+
+def test_offline_vqf_peer_lands_in_ned() -> None:
+    """The offline VQF adapter's frames: a wrong one shows up as tens of degrees."""
+    pytest.importorskip("vqf", reason="vqf (dev extra) is not installed")
+    from mavest.evaluation.peers import PEERS
+
+    data = simulate(30.0, 100.0, seed=15)
+    settled = data.t > 5.0
+    for mag in (None, data.mag):
+        q = PEERS["offline VQF"](data.t, data.gyro, data.accel, mag, 100.0)
+        errors = attitude_errors(q[settled], data.q_true[settled])
+        assert _rms_deg(errors.inclination) < 1.0  # measured 0.37°
+        if mag is not None:  # measured 6.8° (magnetic north is 1.9° off true north here)
+            assert _rms_deg(errors.heading) < 10.0
+
+
+def test_consistency_tool_smooth_mode(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    results = tmp_path / "results.md"
+    arguments = ["--smooth", "--runs", "2", "--scenario", "small", "--jobs", "1"]
+    assert load_tool("consistency").main([*arguments, "--results", str(results)]) == 0
+    out = capsys.readouterr().out
+    rows = [line.split("|")[1].strip() for line in out.splitlines() if line.startswith("| ")]
+    assert rows == ["estimate", "filter", "smoother"]
+    section = results.read_text().split("<!-- BEGIN smoothing-consistency -->\n", 1)[1]
+    assert section.startswith("## Smoothing consistency\n")
+    assert out.strip() in section
+
+
+def test_evidence_never_bolds_an_offline_column() -> None:
+    evidence = load_tool("evidence")
+    rows = [
+        evidence.Row("error", {"mavest": 0.5, "mavest smoothed": 0.4}),
+        evidence.Row("count", {"mavest": 3.0, "mavest smoothed": 5.0}, 0, bold_lowest=False),
+    ]
+    table = evidence.format_table("t", ["mavest", "mavest smoothed"], rows, True, {"mavest"})
+    assert table.splitlines()[2:] == ["| error | **0.50** | 0.40 |", "| count | 3 | 5 |"]
+
+
+def test_known_acceleration_reaches_both_passes() -> None:
+    """With the vehicle's acceleration known (GPS), both passes remove it: the smoothed
+    estimate gains on the filter's, and on the unaided smoother."""
+    data = simulate(40.0, 100.0, motion=Motion(velocity_sigma=1.0), seed=16)
+    aided = smooth(data.t, data.gyro, data.accel, linear_accel=data.linear_accel)
+    forward = estimate(data.t, data.gyro, data.accel, linear_accel=data.linear_accel)
+    plain = smooth(data.t, data.gyro, data.accel)
+    error = {
+        name: _rms_deg(attitude_errors(out.q, data.q_true).inclination)
+        for name, out in (("aided", aided), ("forward", forward), ("plain", plain))
+    }
+    assert error["aided"] < error["forward"] and error["aided"] < error["plain"], error
+    np.testing.assert_array_equal(aided.flags, forward.flags)
