@@ -30,7 +30,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, NoReturn, Protocol
 
 import numpy as np
 from numba.core import event as numba_event
@@ -579,8 +579,14 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
 
 
-def _add_stream_options(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("streams and output (override the config file)")
+class _Options(Protocol):
+    """A parser or one of its argument groups."""
+
+    def add_argument(self, *args: Any, **kwargs: Any) -> Any: ...
+
+
+def _add_stream_selection(group: _Options) -> None:
+    """Which IMU streams are estimated: the same options wherever logs or links are read."""
     group.add_argument(
         "--imu",
         choices=("auto", "all", *IMU_MESSAGES),
@@ -595,6 +601,20 @@ def _add_stream_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--system", type=_ID, metavar="ID", help="follow this vehicle only (default: all)"
     )
+
+
+def _add_settle(parser: _Options) -> None:
+    parser.add_argument(
+        "--settle",
+        type=_NON_NEGATIVE,
+        metavar="S",
+        help="seconds before accuracy is scored (default 10)",
+    )
+
+
+def _add_stream_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("streams and output (override the config file)")
+    _add_stream_selection(group)
     group.add_argument(
         "--sysid", type=_ID, metavar="ID", help="mavest's system id (default: the vehicle's)"
     )
@@ -765,12 +785,7 @@ def build_parser() -> argparse.ArgumentParser:
         "log) and put it beside the online estimate: in the summary (against the autopilot "
         "and the truth), the --rrd recording and the --estimates table (smoothed_* columns)",
     )
-    rep.add_argument(
-        "--settle",
-        type=_NON_NEGATIVE,
-        metavar="S",
-        help="seconds before accuracy is scored (default 10)",
-    )
+    _add_settle(rep)
     _add_stream_options(rep)
     _add_common(rep)
     rep.set_defaults(handler=_replay)
@@ -822,26 +837,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="worker processes of the local cluster (default: this machine's cores)",
     )
     stream = fleet.add_argument_group("streams (override the config file)")
-    stream.add_argument(
-        "--imu",
-        choices=("auto", "all", *IMU_MESSAGES),
-        help="IMU message to estimate from (default auto: the best one each vehicle sends)",
-    )
-    stream.add_argument(
-        "--instance",
-        type=_number(0, 255, whole=True),
-        metavar="N",
-        help="IMU instance (default: lowest)",
-    )
-    stream.add_argument(
-        "--system", type=_ID, metavar="ID", help="follow this vehicle only (default: all)"
-    )
-    stream.add_argument(
-        "--settle",
-        type=_NON_NEGATIVE,
-        metavar="S",
-        help="seconds before accuracy is scored (default 10)",
-    )
+    _add_stream_selection(stream)
+    _add_settle(stream)
     _add_common(fleet)
     fleet.set_defaults(handler=_fleet)
 

@@ -196,6 +196,15 @@ def test_a_remote_log_is_copied_and_replayed(flights: Path) -> None:
     assert empty["error"] == "memory:///fleet/logs/empty.tlog is empty"
 
 
+def test_a_file_url_is_the_path_it_names(flights: Path) -> None:
+    url = (flights / "a.tlog").as_uri()  # file:///…/a.tlog
+    assert url in expand([flights.as_uri() + "/*.tlog"])[0]
+    (by_url,) = log_rows(LogTask(url, CONFIG))
+    (by_path,) = log_rows(LogTask(str(flights / "a.tlog"), CONFIG))
+    assert by_url["path"] == url and by_url["status"] == "ok"
+    assert all(_same(by_url[k], by_path[k]) for k in COLUMN_NAMES if k != "path")
+
+
 # ------------------------------------------------------------------ LocalCluster
 
 

@@ -37,6 +37,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -118,11 +119,22 @@ def _smoother(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
     return series.q, series.cov
 
 
+ADAPTIVE = EstimatorConfig.from_toml(Path(__file__).resolve().parents[1] / "configs/adaptive.toml")
+
+
+def _adaptive(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
+    series = mavest.estimate(recording.t, recording.gyro, recording.accel, recording.mag, ADAPTIVE)
+    return series.q, series.cov
+
+
 def estimators() -> list[NamedEstimator]:
-    """mavest's filter and, when the package has one, its smoother: adding an estimator
-    is one entry here."""
+    """mavest's filter, with the motion level measured (configs/adaptive.toml) and, when
+    the package has one, its smoother: adding an estimator is one entry here."""
     error = EstimatorConfig().error
-    entries = [NamedEstimator("mavest", _filter, error)]
+    entries = [
+        NamedEstimator("mavest", _filter, error),
+        NamedEstimator("mavest adaptive", _adaptive, ADAPTIVE.error),
+    ]
     if hasattr(mavest, "smooth"):
         entries.append(NamedEstimator("mavest.smooth", _smoother, error))
     return entries

@@ -1,6 +1,7 @@
 """What smoothing costs: time per sample against the filter's, and memory for an hour at 1 kHz.
 
     .venv/bin/python tools/smooth_cost.py [--seconds 600] [--rate 1000] [--quick]
+                                          [--results [FILE]]
 
 On one simulated flight (``mavest.sim.simulate``, 6-D and 9-D) it times
 ``mavest.estimate`` and ``mavest.smooth`` (the better of two runs each, after a
@@ -12,7 +13,8 @@ to), on the flight and on its first half. The peak is linear in the samples
 beyond the smoother's blocks of ``mavest.estimator.smoother.BLOCK`` samples, so the
 two give it for any length: printed for an hour at ``--rate``, with the inputs
 (t, gyro, accel, mag as float64) and the result alone (an ``EstimateSeries``, which
-both calls return). --quick: 140 s of flight (many blocks at 1 kHz).
+both calls return). --quick: 140 s of flight (many blocks at 1 kHz). --results writes
+the tables as the Smoothing section of docs/results.md (or FILE).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from collections.abc import Callable
 from mavest import estimate, smooth
 from mavest.estimator import EstimateSeries
 from mavest.estimator.smoother import BLOCK
+from mavest.evaluation import report
 from mavest.sim import simulate
 
 GIB = 2**30
@@ -63,7 +66,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=600.0, help="flight length (s)")
     parser.add_argument("--rate", type=float, default=1000.0, help="IMU rate (Hz)")
     parser.add_argument("--quick", action="store_true", help="a 140 s flight")
+    report.add_results_option(parser)
     args = parser.parse_args(argv)
+    with report.results_section(args.results, "Smoothing", __file__, argv, __doc__):
+        _measure(args)
+    return 0
+
+
+def _measure(args: argparse.Namespace) -> None:
     seconds = 140.0 if args.quick else args.seconds
     data = simulate(seconds, args.rate, seed=1)
     n = len(data.t)
@@ -108,7 +118,6 @@ def main(argv: list[str] | None = None) -> int:
         f"{held_per_sample * hour / GIB:.2f} GiB an hour; the inputs (float64): "
         f"{inputs:.0f} B a sample, {inputs * hour / GIB:.2f} GiB an hour"
     )
-    return 0
 
 
 if __name__ == "__main__":

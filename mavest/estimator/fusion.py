@@ -34,6 +34,33 @@ def _attitude_to_world(q: np.ndarray, P: np.ndarray, R: np.ndarray, out: np.ndar
 
 
 @kernel
+def _covariance_to_world(
+    q: np.ndarray, P: np.ndarray, R: np.ndarray, A: np.ndarray, out: np.ndarray
+) -> None:
+    """out (6 × 6) = the right error's covariance P as the left error's: the attitude rows
+    and columns turned by R (P_θθ ← R P_θθ Rᵀ, P_θb ← R P_θb), R the attitude's matrix;
+    A is scratch."""
+    so3.matrix_from_quat_into(q, R)
+    for r in range(6):
+        for c in range(6):
+            A[r, c] = P[r, c]
+    for r in range(3):
+        for c in range(6):
+            total = 0.0
+            for m in range(3):
+                total += R[r, m] * P[m, c]
+            A[r, c] = total
+    for r in range(6):
+        for c in range(3):
+            total = 0.0
+            for m in range(3):
+                total += A[r, m] * R[c, m]
+            out[r, c] = total
+        for c in range(3, 6):
+            out[r, c] = A[r, c]
+
+
+@kernel
 def _predicted_attitude(
     q: np.ndarray,
     bias: np.ndarray,
@@ -147,25 +174,8 @@ def fuse_block(
                 q_next, b_next, P_next = q_b[j - 1], b_b[j - 1], P_b[j - 1]
             else:
                 q_next, b_next, P_next = q_after, b_after, P_after
-            if right:  # to the left error: P_θb ← R P_θb, P_θθ ← R P_θθ Rᵀ
-                so3.matrix_from_quat_into(q_next, R)
-                for r in range(6):
-                    for c in range(6):
-                        A[r, c] = P_next[r, c]
-                for r in range(3):
-                    for c in range(6):
-                        total = 0.0
-                        for m in range(3):
-                            total += R[r, m] * P_next[m, c]
-                        A[r, c] = total
-                for r in range(6):
-                    for c in range(3):
-                        total = 0.0
-                        for m in range(3):
-                            total += A[r, m] * R[c, m]
-                        Pw[r, c] = total
-                    for c in range(3, 6):
-                        Pw[r, c] = A[r, c]
+            if right:  # to the left error
+                _covariance_to_world(q_next, P_next, R, A, Pw)
                 P_next = Pw
             _predicted_attitude(
                 q_next,
@@ -191,24 +201,7 @@ def fuse_block(
                         Pb[r, c] = P_b[j, r, c]
         # the forward covariance in the world frame
         if right:
-            so3.matrix_from_quat_into(q_f[k], R)
-            for r in range(6):
-                for c in range(6):
-                    A[r, c] = P_f[k, r, c]
-            for r in range(3):
-                for c in range(6):
-                    total = 0.0
-                    for m in range(3):
-                        total += R[r, m] * P_f[k, m, c]
-                    A[r, c] = total
-            for r in range(6):
-                for c in range(3):
-                    total = 0.0
-                    for m in range(3):
-                        total += A[r, m] * R[c, m]
-                    Pw[r, c] = total
-                for c in range(3, 6):
-                    Pw[r, c] = A[r, c]
+            _covariance_to_world(q_f[k], P_f[k], R, A, Pw)
         else:
             for r in range(6):
                 for c in range(6):
