@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import logging
 import math
 import os
 import re
@@ -38,7 +39,7 @@ from mavest.cli import main
 from mavest.datasets import data_root
 from mavest.fleet.cluster import Progress, local_cluster, run_fleet
 from mavest.fleet.inputs import FleetInputError, expand, output_names
-from mavest.fleet.rows import COLUMN_NAMES, LogTask, log_rows
+from mavest.fleet.rows import COLUMN_NAMES, LogTask, log_rows, warm_up
 from mavest.fleet.table import csv_bytes
 from mavest.service.config import ServiceConfig
 from mavest.service.process import free_port
@@ -471,3 +472,16 @@ def _cache_directory() -> str:
     from mavest import _jit
 
     return str(_jit.CACHE_DIRECTORY)
+
+
+def test_warm_up_replays_a_log_even_inside_a_running_event_loop(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # Dask's Client.run calls it in the worker's event loop, where asyncio.run cannot
+    # start: the small log is replayed in a thread of its own (else an error row)
+    async def inside() -> None:
+        warm_up()
+
+    with caplog.at_level(logging.WARNING, logger="mavest"):
+        asyncio.run(inside())
+    assert "warming up the replay failed" not in caplog.text

@@ -21,6 +21,7 @@ import math
 import os
 import shutil
 import tempfile
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,14 +135,43 @@ def error_row(source: str, message: str) -> dict[str, Any]:
 
 
 def warm_up() -> None:
-    """Load (or compile, the first time on a machine) the filter's kernels in this
-    process, so the first log of a worker does not pay it in its own time."""
-    import pyarrow.parquet  # noqa: F401  (every log's estimates table is read with it)
+    """Load (or compile, the first time on a machine) everything a log's replay runs in
+    this process — the filter's kernels, the replay's decoder and bulk path, the
+    estimates table's writer and reader — by replaying a small log made here (2 s of
+    RAW_IMU at rest), so the first log of a worker does not pay it in its own time.
 
-    from mavest.estimator import Estimator
+    In a thread of its own: Dask's ``Client.run`` calls this in the worker's event
+    loop, inside which the replay's ``asyncio.run`` cannot start."""
+    rows: list[dict[str, Any]] = []
 
-    estimator = Estimator(ServiceConfig().estimator)
-    _ = estimator.update(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, -9.80665)).euler
+    def replay_one() -> None:
+        with tempfile.TemporaryDirectory(prefix="mavest-fleet-") as scratch:
+            log_path = Path(scratch) / "warm-up.tlog"
+            _write_resting_log(log_path)
+            rows.extend(log_rows(LogTask(str(log_path), ServiceConfig())))
+
+    thread = threading.Thread(target=replay_one, name="mavest-warm-up")
+    thread.start()
+    thread.join()
+    if not rows or rows[0]["status"] != "ok":
+        log.warning("warming up the replay failed: %s", rows[0]["error"] if rows else "no row")
+
+
+def _write_resting_log(path: Path, seconds: float = 2.0, rate: float = 200.0) -> None:
+    """A tlog of a vehicle at rest: HEARTBEAT, then RAW_IMU (mG, mrad/s) at ``rate``."""
+    from mavest.mavlink.messages import MAVLink, mavlink2
+    from mavest.mavlink.tlog import TlogWriter
+
+    mav = MAVLink(None, srcSystem=1, srcComponent=1)
+    with TlogWriter(path) as tlog:
+        heartbeat = mav.heartbeat_encode(
+            mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0
+        )
+        tlog.write(0, heartbeat.pack(mav))
+        for k in range(1, round(seconds * rate) + 1):
+            us = round(k * 1e6 / rate)
+            raw = mav.raw_imu_encode(us, 0, 0, -1000, 0, 0, 0, 200, 0, 400, 0, 3500)
+            tlog.write(us, raw.pack(mav))
 
 
 def log_rows(task: LogTask) -> list[dict[str, Any]]:
