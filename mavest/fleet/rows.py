@@ -147,31 +147,18 @@ def warm_up() -> None:
     def replay_one() -> None:
         with tempfile.TemporaryDirectory(prefix="mavest-fleet-") as scratch:
             log_path = Path(scratch) / "warm-up.tlog"
-            _write_resting_log(log_path)
+            write_resting_tlog(log_path)
             rows.extend(log_rows(LogTask(str(log_path), ServiceConfig())))
+
+    # (the vehicle's messages are built where the simulated vehicle's are, in mavest.sim:
+    # the service itself builds none but its answers)
+    from mavest.sim.vehicle import write_resting_tlog
 
     thread = threading.Thread(target=replay_one, name="mavest-warm-up")
     thread.start()
     thread.join()
     if not rows or rows[0]["status"] != "ok":
         log.warning("warming up the replay failed: %s", rows[0]["error"] if rows else "no row")
-
-
-def _write_resting_log(path: Path, seconds: float = 2.0, rate: float = 200.0) -> None:
-    """A tlog of a vehicle at rest: HEARTBEAT, then RAW_IMU (mG, mrad/s) at ``rate``."""
-    from mavest.mavlink.messages import MAVLink, mavlink2
-    from mavest.mavlink.tlog import TlogWriter
-
-    mav = MAVLink(None, srcSystem=1, srcComponent=1)
-    with TlogWriter(path) as tlog:
-        heartbeat = mav.heartbeat_encode(
-            mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0
-        )
-        tlog.write(0, heartbeat.pack(mav))
-        for k in range(1, round(seconds * rate) + 1):
-            us = round(k * 1e6 / rate)
-            raw = mav.raw_imu_encode(us, 0, 0, -1000, 0, 0, 0, 200, 0, 400, 0, 3500)
-            tlog.write(us, raw.pack(mav))
 
 
 def log_rows(task: LogTask) -> list[dict[str, Any]]:

@@ -264,6 +264,21 @@ def write_flight_tlog(
     return f"wrote {path}: {described[0]}"
 
 
+def write_resting_tlog(path: str | Path, seconds: float = 2.0, rate: float = 200.0) -> None:
+    """A tlog of an ArduPilot vehicle at rest, level: a HEARTBEAT, then RAW_IMU (1 g up
+    in mG, no rotation) at ``rate``. No flight model: what warms a replay up."""
+    mav = MAVLink(None, srcSystem=1, srcComponent=1)
+    with TlogWriter(path) as tlog:
+        heartbeat = mav.heartbeat_encode(
+            mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0
+        )
+        tlog.write(0, heartbeat.pack(mav))
+        for k in range(1, round(seconds * rate) + 1):
+            us = round(k * 1e6 / rate)
+            raw = mav.raw_imu_encode(us, 0, 0, -1000, 0, 0, 0, 200, 0, 400, 0, 3500)
+            tlog.write(us, raw.pack(mav))
+
+
 # --------------------------------------------------------------------------
 # a vehicle streaming in real time
 # --------------------------------------------------------------------------
