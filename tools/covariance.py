@@ -152,11 +152,9 @@ def broad_recordings(prefixes: Sequence[str] | None, split: str, quick: bool) ->
     except ImportError:
         raise MissingInputError("the package h5py (dev extra) is needed to read BROAD") from None
     try:
-        paths = list_trials()
+        paths = list_trials(prefixes=prefixes)
     except FileNotFoundError as error:
         raise MissingInputError(str(error)) from None
-    if prefixes:
-        paths = [p for p in paths if any(p.stem.startswith(x) for x in prefixes)]
     if split != "all":
         paths = [p for p in paths if int(p.stem[:2]) % 2 == (split == "odd")]
     if quick and not prefixes and len(paths) > QUICK_TRIALS:

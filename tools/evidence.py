@@ -218,11 +218,9 @@ class BroadResult:
 def load_broad(prefixes: Sequence[str] | None) -> list[BroadTrial]:
     """The BROAD trials (those whose names start with one of ``prefixes``, if given)."""
     try:
-        paths = list_trials()
+        paths = list_trials(prefixes=prefixes)
     except FileNotFoundError as error:
         raise MissingInputError(str(error)) from None
-    if prefixes:
-        paths = [p for p in paths if any(p.stem.startswith(x) for x in prefixes)]
     if not paths:
         wanted = f" matching --trials {' '.join(prefixes)}" if prefixes else ""
         raise MissingInputError(f"no BROAD .hdf5 trial{wanted} in {DATA_ENV_VAR}'s broad/")

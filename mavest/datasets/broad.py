@@ -32,6 +32,7 @@ h5py is a development extra, so it is imported inside :func:`load_trial`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -111,9 +112,13 @@ def broad_dir(root: Path | str | None = None) -> Path:
     return root
 
 
-def list_trials(root: Path | None = None) -> list[Path]:
-    """All BROAD trial files (``*.hdf5``), sorted by name (trial number first)."""
-    return sorted(broad_dir(root).glob("*.hdf5"))
+def list_trials(root: Path | None = None, prefixes: Sequence[str] | None = None) -> list[Path]:
+    """All BROAD trial files (``*.hdf5``), sorted by name (trial number first); with
+    ``prefixes``, those whose names start with one of them."""
+    paths = sorted(broad_dir(root).glob("*.hdf5"))
+    if prefixes:
+        paths = [p for p in paths if any(p.stem.startswith(x) for x in prefixes)]
+    return paths
 
 
 def _resolve_trial(path_or_name: Path | str) -> Path:

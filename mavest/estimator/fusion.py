@@ -34,13 +34,17 @@ def _attitude_to_world(q: np.ndarray, P: np.ndarray, R: np.ndarray, out: np.ndar
 
 
 @kernel
-def _covariance_to_world(
-    q: np.ndarray, P: np.ndarray, R: np.ndarray, A: np.ndarray, out: np.ndarray
+def _turn_covariance(
+    q: np.ndarray, P: np.ndarray, to_world: bool, R: np.ndarray, A: np.ndarray, out: np.ndarray
 ) -> None:
-    """out (6 × 6) = the right error's covariance P as the left error's: the attitude rows
-    and columns turned by R (P_θθ ← R P_θθ Rᵀ, P_θb ← R P_θb), R the attitude's matrix;
-    A is scratch."""
+    """out (6 × 6) = P with its attitude rows and columns turned: ``to_world``, a right
+    (body-frame) error's covariance as the left error's (P_θθ ← R P_θθ Rᵀ, P_θb ← R P_θb);
+    else back (Rᵀ in R's place). R is the attitude q's matrix; R and A are scratch."""
     so3.matrix_from_quat_into(q, R)
+    if not to_world:
+        for r in range(3):
+            for c in range(r + 1, 3):
+                R[r, c], R[c, r] = R[c, r], R[r, c]
     for r in range(6):
         for c in range(6):
             A[r, c] = P[r, c]
@@ -175,7 +179,7 @@ def fuse_block(
             else:
                 q_next, b_next, P_next = q_after, b_after, P_after
             if right:  # to the left error
-                _covariance_to_world(q_next, P_next, R, A, Pw)
+                _turn_covariance(q_next, P_next, True, R, A, Pw)
                 P_next = Pw
             _predicted_attitude(
                 q_next,
@@ -201,7 +205,7 @@ def fuse_block(
                         Pb[r, c] = P_b[j, r, c]
         # the forward covariance in the world frame
         if right:
-            _covariance_to_world(q_f[k], P_f[k], R, A, Pw)
+            _turn_covariance(q_f[k], P_f[k], True, R, A, Pw)
         else:
             for r in range(6):
                 for c in range(6):
@@ -254,24 +258,7 @@ def fuse_block(
         for i in range(3):
             b_f[k, i] += x[3 + i]
         if right:  # back to the body frame of the smoothed attitude: Rᵀ P_θθ R, Rᵀ P_θb
-            so3.matrix_from_quat_into(q_f[k], R)
-            for r in range(3):
-                for c in range(6):
-                    total = 0.0
-                    for i in range(3):
-                        total += R[i, r] * Pw[i, c]
-                    A[r, c] = total
-            for r in range(3, 6):
-                for c in range(6):
-                    A[r, c] = Pw[r, c]
-            for r in range(6):
-                for c in range(3):
-                    total = 0.0
-                    for i in range(3):
-                        total += A[r, i] * R[i, c]
-                    P_f[k, r, c] = total
-                for c in range(3, 6):
-                    P_f[k, r, c] = A[r, c]
+            _turn_covariance(q_f[k], Pw, False, R, A, P_f[k])
             for r in range(6):  # (symmetric to rounding; made exactly so)
                 for c in range(r + 1, 6):
                     value = 0.5 * (P_f[k, r, c] + P_f[k, c, r])
