@@ -20,6 +20,8 @@ from mavest import EstimatorConfig, estimate, so3
 from mavest.estimator import magnetic
 from mavest.estimator.charts import reset_jacobian_into
 from mavest.estimator.estimator import Estimator
+from mavest.estimator.frames import world_move_into
+from mavest.estimator.gravity_update import accel_update
 from mavest.estimator.layout import (
     CHARTS,
     ERROR_SIDES,
@@ -28,13 +30,8 @@ from mavest.estimator.layout import (
     make_coefficients,
     new_state,
 )
-from mavest.estimator.recursion import (
-    _absorb_sample,
-    _flush_pending,
-    _world_move_into,
-    accel_update,
-    predict,
-)
+from mavest.estimator.lowpass import absorb_sample
+from mavest.estimator.propagation import flush_pending, predict
 from mavest.sim import ImuNoise, Motion, simulate
 
 G = 9.80665
@@ -383,8 +380,8 @@ def _predict_and_absorb(state, coefficients, gyro, accel, dt):
     c = coefficients[0]
     for k in range(gyro.shape[0]):
         predict(s, c, gyro[k], dt)
-        _absorb_sample(s, c, accel[k], dt, False)
-    _flush_pending(s, c)
+        absorb_sample(s, c, accel[k], dt, False)
+    flush_pending(s, c)
 
 
 # the process noise as near zero as the config allows
@@ -406,7 +403,7 @@ def test_the_pending_transition_is_the_per_sample_propagation(
     side: str, chart: str, settled: bool, aided: bool
 ) -> None:
     """Between updates the considered rows' transition is accumulated and applied at
-    once (recursion._flush_pending), P's 6×6 propagated every sample. Against the same
+    once (propagation.flush_pending), P's 6×6 propagated every sample. Against the same
     samples propagated one by one through the whole P: without process noise the same to
     rounding; with it, the estimate's 6×6 still is, and the rest differs by what the
     accumulation leaves out (the gyro noise's share in ε counted as if it came at the
@@ -442,7 +439,7 @@ def test_the_pending_transition_is_the_per_sample_propagation(
 
 
 def test_a_reset_turns_the_considered_states_by_its_turn_about_the_vertical() -> None:
-    """_world_move_into's W is the twist of the world frame's move: what is left of the
+    """world_move_into's W is the twist of the world frame's move: what is left of the
     move without it (scipy composes them) turns nothing about the vertical, a swing about
     a horizontal axis. W is a rotation, so the horizontal errors keep their variance
     through a tilt, as the vertical components (not carried) would give it back."""
@@ -451,15 +448,13 @@ def test_a_reset_turns_the_considered_states_by_its_turn_about_the_vertical() ->
     for _ in range(50):
         q_old, move = Rotation.random(random_state=rng), Rotation.random(random_state=rng)
         q_new = move * q_old
-        _world_move_into(
-            q_new.as_quat(scalar_first=True), q_old.as_quat(scalar_first=True), W, work
-        )
+        world_move_into(q_new.as_quat(scalar_first=True), q_old.as_quat(scalar_first=True), W, work)
         np.testing.assert_allclose(W @ W.T, np.eye(2), atol=1e-14)
         twist = math.atan2(W[1, 0], W[0, 0])
         swing = Rotation.from_euler("z", -twist) * move
         assert abs(swing.as_quat(scalar_first=True)[3]) < 1e-12
     tilt = Rotation.from_rotvec([0.3, -0.2, 0.0])
-    _world_move_into(
+    world_move_into(
         (tilt * q_old).as_quat(scalar_first=True), q_old.as_quat(scalar_first=True), W, work
     )
     np.testing.assert_allclose(W, np.eye(2), atol=1e-15)

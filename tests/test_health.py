@@ -1,6 +1,6 @@
 """The filter's health: checked after every step, a broken or diverged filter re-initialised.
 
-The checks themselves are the kernel's (``recursion._check_health``); here numpy
+The checks themselves are the kernel's (``health.check_health``); here numpy
 checks the covariance independently (eigenvalues, not a Cholesky), and the
 recoveries are measured against the same runs without them.
 """
@@ -18,7 +18,7 @@ from rerun.chunk import RrdReader
 from scipy.spatial.transform import Rotation
 
 from mavest import EstimateSeries, Estimator, EstimatorConfig, StepFlags
-from mavest.estimator.recursion import _state_is_healthy
+from mavest.estimator.health import state_is_healthy
 from mavest.evaluation.metrics import attitude_errors
 from mavest.mavlink.tlog import TlogReader
 from mavest.service.config import ServiceConfig
@@ -99,9 +99,9 @@ def test_the_health_check_finds_each_kind_of_broken_state(corrupt) -> None:
     # the kernel's own check (run after every step), on a state as a step could leave it
     estimator = _settled()
     state, coefficients = estimator._state, estimator._coefficients
-    assert _state_is_healthy(state[0], coefficients[0])
+    assert state_is_healthy(state[0], coefficients[0])
     corrupt(state)
-    assert not _state_is_healthy(state[0], coefficients[0])
+    assert not state_is_healthy(state[0], coefficients[0])
 
 
 # A negative or an absurd variance written between two steps is overwritten by the next

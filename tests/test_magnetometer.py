@@ -304,8 +304,8 @@ def test_heading_update_covariance_is_the_joseph_form_with_the_full_jacobian(
     reset leaves P alone. The noise turns the field the tilt leaks along: H's tilt part
     is its mean over that turn, e^(−σ²/2), and the rest of the leak's variance is in R."""
     from mavest.estimator.charts import retract_into
+    from mavest.estimator.heading import mag_update
     from mavest.estimator.layout import ERROR_LEFT, make_coefficients, new_state
-    from mavest.estimator.recursion import mag_update
 
     config = EstimatorConfig(error=error, chart=chart, mag_gate=0.0, update_rate=0.0)
     coefficients = make_coefficients(config)

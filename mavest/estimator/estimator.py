@@ -21,9 +21,10 @@ from mavest import so3
 from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
 from mavest.estimator.config import EstimatorConfig
+from mavest.estimator.heading import turn_heading
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.linalg import copy_into, copy_matrix_into
-from mavest.estimator.recursion import step, turn_heading
+from mavest.estimator.recursion import step
 
 
 class InputError(ValueError):
@@ -33,7 +34,7 @@ class InputError(ValueError):
 
 @inplace_kernel
 def _turn_heading(state: np.ndarray, coefficients: np.ndarray, psi: float) -> None:
-    """:func:`~mavest.estimator.recursion.turn_heading` on the state record."""
+    """:func:`~mavest.estimator.heading.turn_heading` on the state record."""
     turn_heading(state[0], coefficients[0], psi)
 
 

@@ -31,8 +31,8 @@ N_ERROR = 6  # the estimated error: δθ (3) and δb (3)
 # Their vertical components are not carried: the gravity update does not measure
 # ε_z (a vertical error of f̄ changes its norm, not its direction), the prediction
 # moves ε's x, y only, each axis's low-pass is its own, and a reset turns the
-# considered states by its turn about the vertical alone (recursion's
-# _world_move_into), so nothing measured depends on them. (Turned by the reset's
+# considered states by its turn about the vertical alone (frames.world_move_into),
+# so nothing measured depends on them. (Turned by the reset's
 # whole rotation, as the low-pass's vectors are, its tilt would mix vertical
 # components into the horizontal: components of nearly the same statistics.)
 N_AXES = 2
@@ -173,7 +173,7 @@ COEFFICIENTS_DTYPE = np.dtype(
         ("lowpass_restart_angle", np.float64),
         ("update_interval", np.float64),  # s between measurement updates (0: every sample)
         # 1: between updates the covariance's transition is accumulated and applied
-        # at the next update (recursion's "pending transition"); 0: every sample's
+        # at the next update (propagation's "pending transition"); 0: every sample's
         ("accumulate", np.int64),
         ("velocity_var", np.float64),
         ("velocity_time", np.float64),
@@ -258,7 +258,7 @@ STATE_DTYPE = np.dtype(
         ("rest_sum_time", np.float64),
         ("t_update", np.float64),  # time of the last update sample (gravity, zero rate)
         # The covariance's transition since P's considered rows were last brought up to
-        # date (recursion._flush_pending): the steps in it, P's 6×6 then, and the
+        # date (propagation.flush_pending): the steps in it, P's 6×6 then, and the
         # linear map of the error x = [δθ, δb, u] (u = ε, ḟ, v) over them,
         #   δθ ← Θθ δθ + Θb δb,   u ← (A ⊗ I₂) u + U [δθ; δb],
         # with the low-pass's own noise N (per axis, in ε, ḟ, v) added. P's 6×6 itself
