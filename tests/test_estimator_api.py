@@ -442,3 +442,15 @@ def test_free_fall_or_high_g_at_the_start_is_not_taken_for_another_unit() -> Non
         out = estimate(data.t, data.gyro, accel)
         assert not np.any(out.flags & StepFlags.ACCEL_WRONG_UNIT)
         assert out.flags[-1] & StepFlags.NOT_INITIALISED == 0
+
+
+def test_every_flag_fits_the_series_flags_type() -> None:
+    from mavest.estimator.estimator import FLAGS_DTYPE
+
+    every = 0
+    for name, bit in vars(StepFlags).items():
+        if name.isupper():
+            every |= bit
+    assert every <= np.iinfo(FLAGS_DTYPE).max
+    series = estimate([0.0, 0.01], np.zeros((2, 3)), [[0.0, 0.0, -9.8]] * 2)
+    assert series.flags.dtype == FLAGS_DTYPE

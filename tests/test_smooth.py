@@ -220,6 +220,35 @@ def test_blocks_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> Non
         np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))
 
 
+@pytest.mark.parametrize("with_mag", [False, True], ids=["6d", "9d"])
+def test_memory_beyond_the_result_is_small(with_mag: bool) -> None:
+    """An hour at 1 kHz must smooth in 1.5 GB: the result (401 B a sample) and little
+    more. What else grows with the samples (the slope between two lengths, past the
+    smoother's fixed blocks) is bounded here at 16 B a sample."""
+    import tracemalloc
+
+    data = simulate(80.0, 500.0, seed=4)
+    mag = data.mag if with_mag else None
+    n = len(data.t)
+    for run in (estimate, smooth):
+        run(data.t[:500], data.gyro[:500], data.accel[:500], None if mag is None else mag[:500])
+        beyond = []
+        for m in (n // 2, n):
+            tracemalloc.start()
+            try:
+                out = run(
+                    data.t[:m], data.gyro[:m], data.accel[:m], None if mag is None else mag[:m]
+                )
+                _, peak = tracemalloc.get_traced_memory()
+            finally:
+                tracemalloc.stop()
+            held = sum(getattr(out, name).nbytes for name in type(out).__dataclass_fields__)
+            assert held / m <= 401, (run.__name__, held / m)
+            beyond.append(peak - held)
+        slope = (beyond[1] - beyond[0]) / (n - n // 2)
+        assert slope < 16, (run.__name__, slope)
+
+
 def test_smooth_is_deterministic(flight) -> None:
     a = smooth(flight.t, flight.gyro, flight.accel, flight.mag)
     b = smooth(flight.t, flight.gyro, flight.accel, flight.mag)

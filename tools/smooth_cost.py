@@ -108,9 +108,11 @@ def _measure(args: argparse.Namespace) -> None:
             held_per_sample = held / m
         slope = (peaks[1] - peaks[0]) / (n - half)
         fixed = peaks[1] - slope * n
+        an_hour = fixed + slope * hour
         print(
             f"| {name} | {peaks[0] / 2**20:.0f} MiB | {peaks[1] / 2**20:.0f} MiB | "
-            f"{slope:.0f} B | {fixed / 2**20:.0f} MiB | {(fixed + slope * hour) / GIB:.2f} GiB |"
+            f"{slope:.0f} B | {fixed / 2**20:.0f} MiB | "
+            f"{an_hour / GIB:.2f} GiB ({an_hour / 1e9:.2f} GB) |"
         )
     inputs = sum(a.nbytes for a in (data.t, data.gyro, data.accel, data.mag)) / n
     print(

@@ -93,8 +93,13 @@ def _run_batch(
 ) -> None:
     s = state[0]
     c = coefficients[0]
+    # mag and linear_accel may be one row for all samples (NaN: none throughout)
+    last_mag = mag.shape[0] - 1
+    last_linear = linear_accel.shape[0] - 1
     for i in range(t.shape[0]):
-        step(s, c, t[i], gyro[i], accel[i], mag[i], linear_accel[i])
+        step(
+            s, c, t[i], gyro[i], accel[i], mag[min(i, last_mag)], linear_accel[min(i, last_linear)]
+        )
         copy_into(out_q[i], s.q)
         copy_into(out_bias[i], s.b)
         copy_matrix_into(out_cov[i], s.P[:N_ERROR, :N_ERROR])
@@ -121,8 +126,8 @@ class EstimateSeries:
     innovation: np.ndarray  # (N, 2)
     nis: np.ndarray  # (N,)
     accel_used: np.ndarray  # (N,) bool
-    flags: np.ndarray  # (N,) int
-    iterations: np.ndarray  # (N,) int
+    flags: np.ndarray  # (N,) int32
+    iterations: np.ndarray  # (N,) int16
     at_rest: np.ndarray  # (N,) bool
     heading_innovation: np.ndarray  # (N,)
     heading_nis: np.ndarray  # (N,)
@@ -152,6 +157,12 @@ class EstimateSeries:
     def euler(self) -> np.ndarray:
         """(N, 3) roll, pitch, yaw in rad."""
         return so3.euler_zyx_from_quats(self.q)
+
+
+# The narrowest types that hold every StepFlags value and any iteration count: a
+# sample's estimate is 401 B, of which the covariance is 288.
+FLAGS_DTYPE = np.int32
+ITERATIONS_DTYPE = np.int16
 
 
 def _series3(value: ArrayLike, n: int, name: str) -> np.ndarray:
@@ -415,12 +426,11 @@ class Estimator:
         n = t.shape[0]
         gyro = _series3(gyro, n, "gyro")
         accel = _series3(accel, n, "accel")
-        mag = np.full((n, 3), np.nan) if mag is None else _series3(mag, n, "mag")
-        linear_accel = (
-            np.full((n, 3), np.nan)
-            if linear_accel is None
-            else _series3(linear_accel, n, "linear_accel")
-        )
+        # one NaN row stands for "none" at every sample: an hour at 1 kHz would
+        # otherwise hold 86 MB of NaN for each
+        none = np.full((1, 3), np.nan)
+        mag = none if mag is None else _series3(mag, n, "mag")
+        linear_accel = none if linear_accel is None else _series3(linear_accel, n, "linear_accel")
         out = EstimateSeries(
             t.copy(),
             np.empty((n, 4)),
@@ -429,8 +439,8 @@ class Estimator:
             np.empty((n, 2)),
             np.empty(n),
             np.empty(n, dtype=bool),
-            np.empty(n, dtype=np.int64),
-            np.empty(n, dtype=np.int64),
+            np.empty(n, dtype=FLAGS_DTYPE),
+            np.empty(n, dtype=ITERATIONS_DTYPE),
             np.empty(n, dtype=bool),
             np.empty(n),
             np.empty(n),
