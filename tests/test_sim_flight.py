@@ -271,3 +271,37 @@ def test_imu_errors_do_not_depend_on_chunking(short_flight: Flight) -> None:
     ]
     np.testing.assert_array_equal(np.concatenate([p[0] for p in parts]), whole[0])
     np.testing.assert_array_equal(np.concatenate([p[1] for p in parts]), whole[1])
+
+
+# --------------------------------------------------------------------------
+# The autopilot's telemetry log
+# --------------------------------------------------------------------------
+
+
+def test_an_autopilot_log_holds_each_sample_its_attitude_now_and_then_and_heartbeats() -> None:
+    from mavest.mavlink.messages import MAVLink
+    from mavest.sim.vehicle import BOOT_OFFSET, TLOG_EPOCH_US, autopilot_records
+
+    parser = MAVLink(None)
+    records = [
+        (stamp, parser.decode(bytearray(packet)))
+        for stamp, packet in autopilot_records(2.0, 500.0, seed=2, attitude_every=10)
+    ]
+    names = [message.get_type() for _, message in records]
+    assert names.count("RAW_IMU") == 1001 and names.count("ATTITUDE") == 101
+    heartbeats = [stamp for stamp, message in records if message.get_type() == "HEARTBEAT"]
+    assert heartbeats == [TLOG_EPOCH_US + k * 1_000_000 for k in range(3)]
+    # each ATTITUDE right after the IMU record of its sample (every 10th), at its time
+    after = [i for i, name in enumerate(names) if name == "ATTITUDE"]
+    assert all(names[i - 1] == "RAW_IMU" and records[i - 1][0] == records[i][0] for i in after)
+    imu_times = [message.time_usec for _, message in records if message.get_type() == "RAW_IMU"]
+    attitudes = [records[i][1] for i in after]
+    assert [a.time_boot_ms for a in attitudes] == [t // 1000 for t in imu_times[::10]]
+    # the autopilot's attitude is the flight's truth (scipy's angles), in float32
+    flight = fly(2.0, rate=500.0, seed=2)
+    yaw_pitch_roll = rotations(flight).as_euler("ZYX")[::10]
+    sent = np.array([(a.roll, a.pitch, a.yaw) for a in attitudes])
+    np.testing.assert_allclose(sent, yaw_pitch_roll[:, ::-1], atol=1e-6)
+    rates = np.array([(a.rollspeed, a.pitchspeed, a.yawspeed) for a in attitudes])
+    np.testing.assert_allclose(rates, flight.gyro[::10], rtol=1e-6, atol=1e-7)
+    assert imu_times[0] == round(BOOT_OFFSET * 1e6)

@@ -45,6 +45,7 @@ SECTIONS = (
     "Speed",
     "Online overhead",
     "Service",
+    "Replay time split",
     "Long runs",
     "Onboard logs",
     "Fleet",

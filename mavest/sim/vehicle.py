@@ -117,6 +117,12 @@ class VehicleEncoder:
             round(lon * 1e7),
         ).pack(self._mav)
 
+    def attitude(self, t_boot: float, euler: np.ndarray, rates: np.ndarray) -> bytes:
+        """ATTITUDE: the autopilot's own estimate (here the flight model's truth)."""
+        return self._mav.attitude_encode(
+            math.floor(t_boot * 1e3 + 1e-6), *map(float, euler), *map(float, rates)
+        ).pack(self._mav)
+
     def vfr_hud(self, flight: Flight, i: int, yaw: float) -> bytes:
         """Airspeed and the rest of the head-up display, as autopilots send it (~10 Hz)."""
         velocity = flight.velocity[i]
@@ -183,6 +189,29 @@ def _magnetometer(q_true: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 
+def _flight_chunks(
+    model: FlightModel, imu: NoisyImu, seconds: float
+) -> Iterator[tuple[Flight, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """``seconds`` of ``model``'s flight at its rate (both ends sampled), 10 s at a time
+    (an hour at 1 kHz never sits in memory): each chunk's flight, the gyro and
+    accelerometer ``imu`` measures, the true ZYX angles and the magnetometer's field."""
+    rate = model.rate
+    total = round(seconds * rate) + 1
+    chunk = max(1, round(10.0 * rate))
+    samples = 0
+    while samples < total:
+        flight = model.advance(min(chunk, total - samples))
+        gyro, accel = imu.measure(flight.gyro, flight.accel)
+        yield (
+            flight,
+            gyro,
+            accel,
+            so3.euler_zyx_from_quats(flight.q_true),
+            _magnetometer(flight.q_true),
+        )
+        samples += len(flight)
+
+
 def flight_records(
     seconds: float,
     rate: float,
@@ -194,22 +223,16 @@ def flight_records(
     """A simulated flight's tlog records, (timestamp µs, packet), generated 10 s at a
     time (an hour at 1 kHz never sits in memory); ``described`` gets a line saying
     what was generated once the last record is out."""
-    model = FlightModel(rate, seed)
+    model = FlightModel(rate, seed)  # (before the first record: see write_flight_tlog)
     imu = NoisyImu(errors, rate, seed)
     encoder = VehicleEncoder(autopilot)
-    total = round(seconds * rate) + 1
-    chunk = max(1, round(10.0 * rate))
     next_heartbeat = 0.0
     next_hud = 0.0
     next_gps = 0.0
     gps_noise = np.random.default_rng([seed, GPS_NOISE_STREAM])
     samples = 0
     yield TLOG_EPOCH_US, encoder.declination()
-    while samples < total:
-        flight = model.advance(min(chunk, total - samples))
-        gyro, accel = imu.measure(flight.gyro, flight.accel)
-        euler = so3.euler_zyx_from_quats(flight.q_true)
-        mag = _magnetometer(flight.q_true)
+    for flight, gyro, accel, euler, mag in _flight_chunks(model, imu, seconds):
         for i in range(len(flight)):
             t = float(flight.t[i])
             stamp = TLOG_EPOCH_US + round(t * 1e6)
@@ -262,6 +285,51 @@ def write_flight_tlog(
         for stamp, packet in itertools.chain([first] if first else [], records):
             tlog.write(stamp, packet)
     return f"wrote {path}: {described[0]}"
+
+
+def autopilot_records(
+    seconds: float,
+    rate: float,
+    autopilot: Autopilot = AUTOPILOTS["ardupilot"],
+    seed: int = 1,
+    attitude_every: int = 20,
+) -> Iterator[tuple[int, bytes]]:
+    """What an autopilot's telemetry log holds at a high IMU rate, (timestamp µs,
+    packet): HEARTBEAT at 1 Hz, the IMU message per sample, and the autopilot's own
+    ATTITUDE (the flight model's truth) after every ``attitude_every``-th sample. No
+    simulator truth, GPS or airspeed: a log of what a ground station records."""
+    model = FlightModel(rate, seed)
+    imu = NoisyImu(None, rate, seed)
+    encoder = VehicleEncoder(autopilot)
+    next_heartbeat = 0.0
+    sample = 0
+    for flight, gyro, accel, euler, mag in _flight_chunks(model, imu, seconds):
+        for i in range(len(flight)):
+            t = float(flight.t[i])
+            stamp = TLOG_EPOCH_US + round(t * 1e6)
+            if t >= next_heartbeat:
+                yield stamp, encoder.heartbeat()
+                next_heartbeat += 1.0
+            yield stamp, encoder.imu(t + BOOT_OFFSET, gyro[i], accel[i], mag[i])
+            if sample % attitude_every == 0:
+                yield stamp, encoder.attitude(t + BOOT_OFFSET, euler[i], flight.gyro[i])
+            sample += 1
+
+
+def write_autopilot_tlog(
+    path: str | Path,
+    seconds: float,
+    rate: float,
+    autopilot: Autopilot = AUTOPILOTS["ardupilot"],
+    seed: int = 1,
+    attitude_every: int = 20,
+) -> None:
+    """Write :func:`autopilot_records` to ``path`` (no file if the simulator cannot start)."""
+    records = autopilot_records(seconds, rate, autopilot, seed, attitude_every)
+    first = next(records, None)
+    with TlogWriter(path) as tlog:
+        for stamp, packet in itertools.chain([first] if first else [], records):
+            tlog.write(stamp, packet)
 
 
 def write_resting_tlog(path: str | Path, seconds: float = 2.0, rate: float = 200.0) -> None:
