@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 from pymavlink.dialects.v10 import ardupilotmega as mavlink1
-from test_hostile_input import CASES, Flight, _tlog_bytes, clean_flights
+from test_hostile_input import CASES, Flight, _message_id, _repacked, _tlog_bytes, clean_flights
 
 from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
 from mavest.mavlink import bulk
@@ -30,7 +30,7 @@ from mavest.mavlink.messages import IMU_MESSAGES, MAVLink, decode_imu, mavlink2
 from mavest.mavlink.tlog import TlogReader, TlogWriter
 from mavest.service.config import ServiceConfig
 from mavest.service.runners import Outputs, RunReport, format_summary, replay
-from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
+from mavest.sim.vehicle import AUTOPILOTS, write_autopilot_tlog, write_flight_tlog
 
 CONFIGS = Path(__file__).parent.parent / "configs"
 
@@ -244,6 +244,118 @@ def _shared_tlogs() -> list[Path]:
 @pytest.mark.parametrize("path", _shared_tlogs(), ids=lambda p: p.name)
 def test_real_tlogs_are_the_same_both_ways(path: Path, tmp_path: Path) -> None:
     _assert_same_both_ways(path, ServiceConfig(), tmp_path)
+
+
+# ------------------------------------------------------------------ the autopilot's ATTITUDE
+
+_ATTITUDE = mavlink2.MAVLINK_MSG_ID_ATTITUDE
+_RAW_IMU = mavlink2.MAVLINK_MSG_ID_RAW_IMU
+
+
+@pytest.fixture(scope="module")
+def autopilot_log(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[int, bytes]]:
+    """What an autopilot logs, 4 s at 500 Hz: HEARTBEAT, RAW_IMU and its own ATTITUDE
+    after every 10th sample; as records."""
+    path = tmp_path_factory.mktemp("autopilot") / "autopilot.tlog"
+    write_autopilot_tlog(path, 4.0, 500.0, attitude_every=10)
+    return [(r.timestamp_us, r.packet) for r in TlogReader.open(path, frozenset())]
+
+
+def _shifted(packet: bytes, **offsets: int) -> bytes:
+    """The packet with these fields moved by these amounts."""
+    message = MAVLink(None).decode(bytearray(packet))
+    return _repacked(packet, **{name: getattr(message, name) + d for name, d in offsets.items()})
+
+
+def _before_any_estimate(records: list[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
+    """ATTITUDE before the first IMU sample, and while the stream's first 40 samples are
+    rejected (no acceleration): before the stream has an estimate."""
+    out = [(records[0][0], p) for _, p in records if _message_id(p) == _ATTITUDE][:3]
+    rejected = 0
+    for stamp, packet in records:
+        if _message_id(packet) == _RAW_IMU and rejected < 40:
+            packet = _repacked(packet, xacc=0, yacc=0, zacc=0)
+            rejected += 1
+        out.append((stamp, packet))
+    return out
+
+
+def _two_vehicles_and_a_ground_station(
+    records: list[tuple[int, bytes]],
+) -> list[tuple[int, bytes]]:
+    """Each record again from a second vehicle (system 2) right after it, and the
+    ATTITUDE again from a ground station, which is no vehicle."""
+    out = []
+    for stamp, packet in records:
+        out.append((stamp, packet))
+        out.append((stamp, _repacked(packet, system=2)))
+        if _message_id(packet) == _ATTITUDE:
+            out.append((stamp, _repacked(packet, system=255)))
+    return out
+
+
+def _some_from_before_a_restart(records: list[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
+    """The IMU's time 100 s on, and the ATTITUDE's but for every third: those were sent
+    before the autopilot restarted (more than a minute behind), so not compared."""
+    out = []
+    attitudes = 0
+    for stamp, packet in records:
+        if _message_id(packet) == _RAW_IMU:
+            packet = _shifted(packet, time_usec=100_000_000)
+        elif _message_id(packet) == _ATTITUDE:
+            if attitudes % 3:
+                packet = _shifted(packet, time_boot_ms=100_000)
+            attitudes += 1
+        out.append((stamp, packet))
+    return out
+
+
+_ATTITUDE_CASES = {
+    "as logged": lambda records: records,
+    "before any estimate": _before_any_estimate,
+    "two vehicles and a ground station": _two_vehicles_and_a_ground_station,
+    "some from before a restart": _some_from_before_a_restart,
+}
+
+
+@pytest.mark.parametrize("case", list(_ATTITUDE_CASES))
+def test_the_autopilots_attitude_is_compared_the_same_both_ways(
+    case: str, autopilot_log: list[tuple[int, bytes]], tmp_path: Path
+) -> None:
+    records = _ATTITUDE_CASES[case](autopilot_log)
+    path = tmp_path / "autopilot.tlog"
+    path.write_bytes(_tlog_bytes(records))
+    config = ServiceConfig().replace(input={"settle_time": 1.0})
+    report = _assert_same_both_ways(path, config, tmp_path)
+    compared = [s.vs_autopilot.count for s in report.pipeline.streams.values()]
+    assert all(compared) and len(compared) == (2 if "two" in case else 1)
+    attitudes = sum(_message_id(p) == _ATTITUDE for _, p in autopilot_log)
+    if case == "some from before a restart":
+        # those of the last 3 s (after the settling second), but for every third
+        assert compared[0] == pytest.approx(2 / 3 * 3 / 4 * attitudes, abs=2)
+
+
+def test_the_autopilots_attitude_goes_in_bulk(
+    autopilot_log: list[tuple[int, bytes]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Once a stream is known, the autopilot's ATTITUDE is taken with the estimates in
+    bulk, not one message at a time."""
+    from mavest.service.pipeline import Pipeline
+
+    path = tmp_path / "autopilot.tlog"
+    path.write_bytes(_tlog_bytes(autopilot_log))
+    alone: list[str] = []
+    original = Pipeline.on_message
+
+    def count(self: Pipeline, message: Any, timestamp_us: int) -> None:
+        alone.append(message._type)
+        original(self, message, timestamp_us)
+
+    monkeypatch.setattr(Pipeline, "on_message", count)
+    config = ServiceConfig().replace(input={"settle_time": 1.0})
+    report = _replay(path, config, tmp_path / "out.tlog", fast=True)
+    assert "ATTITUDE" not in alone
+    assert [s.vs_autopilot.count for s in report.pipeline.streams.values()] == [151]
 
 
 # ------------------------------------------------------------------ scanning
@@ -592,16 +704,30 @@ def test_comparison_follows_its_rules_one_by_one_and_in_bulk(seed: int) -> None:
 def test_a_recording_holds_the_same_both_ways(
     turning_flights: dict[str, Path], tmp_path: Path
 ) -> None:
+    config = ServiceConfig.from_toml(CONFIGS / "ardupilot.toml")
+    _assert_same_recording_both_ways(turning_flights["ardupilot"], config, tmp_path)
+
+
+def test_a_recording_with_two_autopilots_attitude_holds_the_same_both_ways(
+    autopilot_log: list[tuple[int, bytes]], tmp_path: Path
+) -> None:
+    path = tmp_path / "autopilot.tlog"
+    path.write_bytes(_tlog_bytes(_two_vehicles_and_a_ground_station(autopilot_log)))
+    config = ServiceConfig().replace(input={"settle_time": 1.0})
+    recordings = _assert_same_recording_both_ways(path, config, tmp_path)
+    assert any(entity.endswith("vs_autopilot") for entity in recordings)
+
+
+def _assert_same_recording_both_ways(
+    path: Path, config: ServiceConfig, tmp_path: Path
+) -> dict[str, Any]:
     from test_rerun import _scalars
 
-    config = ServiceConfig.from_toml(CONFIGS / "ardupilot.toml")
     recordings = {}
     for fast in (True, False):
         rrd = tmp_path / f"{fast}.rrd"
         outputs = Outputs(tlog=tmp_path / f"{fast}.tlog", rrd=rrd)
-        asyncio.run(
-            replay(turning_flights["ardupilot"], config, outputs, progress=False, fast=fast)
-        )
+        asyncio.run(replay(path, config, outputs, progress=False, fast=fast))
         recordings[fast] = _scalars(rrd)
     assert (tmp_path / "True.tlog").read_bytes() == (tmp_path / "False.tlog").read_bytes()
     fast, one_by_one = recordings[True], recordings[False]
@@ -612,6 +738,7 @@ def test_a_recording_holds_the_same_both_ways(
         assert np.array_equal(fast[entity][0], t), entity
         assert np.allclose(fast[entity][1], values, rtol=0, atol=1e-9, equal_nan=True), entity
         assert fast[entity][2] == receive, entity
+    return fast
 
 
 @pytest.mark.parametrize("free", [0, 70_000, 150_001, 10**7])

@@ -15,12 +15,12 @@ numbers, the output tlog, the Rerun recorder), in compiled loops over arrays:
   vehicle's aiding state to give each sample the inputs the pipeline would give it;
 * a step after which those inputs may change (heading set or lost, a
   re-initialisation) ends the batch: the samples after it are taken again;
-* SIMSTATE truth goes into the comparison with the estimates, in order; the
-  vehicle's GPS and airspeed messages change its aiding state, each at the
-  vehicle time where it stands (the same rules, on the fields decoded in bulk);
-  the autopilot's ATTITUDE, others' GPS and airspeed, and a HEARTBEAT that
-  changes nothing the stretch depends on go through :meth:`Pipeline.on_message`
-  in their place between the steps;
+* SIMSTATE truth and the autopilot's ATTITUDE go into the comparisons with the
+  estimates, in order; the vehicle's GPS and airspeed messages change its aiding
+  state, each at the vehicle time where it stands (the same rules, on the fields
+  decoded in bulk); others' GPS and airspeed, and a HEARTBEAT that changes
+  nothing the stretch depends on, go through :meth:`Pipeline.on_message` in
+  their place between the steps;
 * the answers are packed in bulk and written with the input records, each
   after its IMU record, as the pipeline writes them, and our HEARTBEAT after
   the record where the replay loop would send it;
@@ -75,15 +75,17 @@ from mavest.service.pipeline import (
     _report_heading,
     _report_health,
     _report_realigned,
+    autopilot_restarted,
+    autopilot_time,
 )
 
 # What a record is to the pipeline (by message id).
 PASSIVE = 0  # not decoded: copied to the output tlog only
 IMU = 1
 TRUTH = 2  # SIMSTATE
-# Decoded and handled where it stands, between bulk steps: GPS, airspeed and the
-# autopilot's attitude change only the aiding state and the comparison, which the
-# fast path follows (a copy of the aiding state decides each sample's inputs).
+# Decoded in bulk, taken in its place among the steps: GPS and airspeed change only
+# the aiding state, which the fast path follows (a copy of it decides each sample's
+# inputs); the autopilot's attitude goes into the comparison with the estimates.
 INLINE = 3
 OTHER = 4  # decoded and handled one at a time, ending the stretch
 # A vehicle's HEARTBEAT: handled where it stands like INLINE when it changes nothing
@@ -221,6 +223,14 @@ class _Decoded:
                 self.report_ms[rows] = payloads["time_boot_ms"]
             else:
                 self.airspeed[rows] = payloads["airspeed"]
+        # the autopilot's ATTITUDE: its time_boot_ms and angles (float32 widened exactly)
+        self.attitude_ms = np.zeros(n, dtype=np.int64)
+        self.attitude = np.empty((n, 3))
+        rows = np.flatnonzero(records.message_id == _ATTITUDE)
+        if rows.shape[0] and kinds[_ATTITUDE] == INLINE:
+            payloads = bulk.decode_payloads(data, records.part(rows), bulk.ATTITUDE_DTYPE)
+            self.attitude_ms[rows] = payloads["time_boot_ms"]
+            self.attitude[rows] = bulk.simstate_euler(payloads)  # (its roll, pitch, yaw)
 
 
 # What the pipeline does with an IMU record, by its stream.
@@ -256,10 +266,6 @@ class _Steps:
         # the usable readings the filter took (as Pipeline.on_message counts them)
         self.taken_mag = usable_mag & (series.flags & MAG_NOT_TAKEN == 0)
         self.gyro = gyro  # for the answers' rates
-
-    def before(self, row: int) -> slice:
-        """The steps whose records come before ``row``."""
-        return slice(0, int(np.searchsorted(self.rows, row)))
 
 
 class BulkFeed:
@@ -656,8 +662,8 @@ class BulkFeed:
         steps: _Steps | None = None,
     ) -> None:
         """Records [start, stop) as the pipeline takes them, in order: the steps booked
-        and compared with the truth between them, each GPS, airspeed or autopilot
-        attitude message handled where it stands; then the answers packed and all of
+        and compared with the truth and the autopilot's ATTITUDE between them, each GPS
+        or airspeed message handled where it stands; then the answers packed and all of
         it written to the output tlog, with our HEARTBEATs where they fall due."""
         if stop <= start:
             return
@@ -666,14 +672,19 @@ class BulkFeed:
         kind = decoded.kind[start:stop]
         # (every HEARTBEAT here is one that changes nothing the stretch depends on)
         inline = start + np.flatnonzero((kind == INLINE) | (kind == BEAT))
-        # The steps are booked and compared up to each autopilot ATTITUDE, which is
-        # compared with them; a GPS or airspeed message needs only the vehicle's time.
-        splits = inline[records.message_id[inline] == _ATTITUDE]
+        # The autopilot's ATTITUDE goes into the comparisons with the steps, in bulk; while
+        # no stream is known, alone (the pipeline notes what it hears before any IMU).
+        attitudes = inline[records.message_id[inline] == _ATTITUDE]
+        if pipeline.streams and attitudes.shape[0]:
+            inline = np.setdiff1d(inline, attitudes, assume_unique=True)
+        else:
+            attitudes = attitudes[:0]
         vehicle = (
             pipeline.vehicles[(stream.key.system, stream.key.component)]
             if stream is not None
             else None
         )
+        last_t = vehicle.last_t if vehicle is not None else None  # before the stretch
         estimated_at = (
             np.flatnonzero((steps.flags & StepFlags.SKIPPED) == 0)
             if steps is not None
@@ -685,40 +696,24 @@ class BulkFeed:
             followed = _aiding_rows(records, decoded, start, stop, vehicle)
             if followed.shape[0]:
                 inline = np.setdiff1d(inline, followed, assume_unique=True)
-                times: list[float | None] = [vehicle.last_t] * followed.shape[0]
-                if steps is not None and estimated_at.shape[0]:
-                    before = np.searchsorted(estimated_at, np.searchsorted(steps.rows, followed))
-                    at = steps.t[estimated_at[np.maximum(before - 1, 0)]].tolist()
-                    times = [at[k] if b else vehicle.last_t for k, b in enumerate(before.tolist())]
+                times = _vehicle_times(steps, estimated_at, followed, last_t)
                 _follow_many(vehicle, decoded, records.message_id[followed], followed, times)
                 pipeline.messages_in += followed.shape[0]
-        taken = start
-        estimated: list[np.ndarray] = []
-        done = 0  # steps booked
-        last_t = vehicle.last_t if vehicle is not None else None  # as of the steps booked
-        for row in [*inline.tolist(), stop]:
-            if stream is not None and (row == stop or row in splits):
-                upto = steps.before(row).stop if steps is not None else 0
-                kept = self._book_and_compare(
-                    records, decoded, taken, row, stream, steps, done, upto, last_t
-                )
-                if kept is not None:
-                    estimated.append(done + kept)
-                done = upto
-                taken = row + 1
-                last_t = vehicle.last_t if vehicle is not None else None
-            if row == stop:
-                break
-            if vehicle is not None and steps is not None:
-                # vehicle.last_t as the pipeline has it here: its last estimate's time
-                before = int(np.searchsorted(estimated_at, steps.before(row).stop)) - 1
-                if before >= 0:
-                    vehicle.last_t = float(steps.t[estimated_at[before]])
+        # The rest (others' GPS and airspeed, HEARTBEATs) one by one, each with the
+        # vehicle's time where it stands; none of them touches what the steps are booked
+        # and compared into, which is done after them.
+        times = _vehicle_times(steps, estimated_at, inline, last_t)
+        for row, t in zip(inline.tolist(), times, strict=True):
+            if vehicle is not None:
+                vehicle.last_t = t
             pipeline.on_message(self._decode(records, row), int(records.stamp[row]))
+        kept = self._book_and_compare(
+            records, decoded, start, stop, stream, steps, attitudes, last_t
+        )
         pipeline.messages_in += int((kind == IMU).sum() + (kind == TRUTH).sum())
+        pipeline.messages_in += attitudes.shape[0]
         answered = np.empty(0, dtype=np.int64)  # indices of the steps answered
-        if stream is not None and steps is not None and stream.primary and estimated:
-            kept = np.concatenate(estimated)
+        if stream is not None and steps is not None and stream.primary and kept is not None:
             answered = kept[self._answered(stream, steps.t[kept])]
         answered_rows = steps.rows[answered] if steps is not None else answered
         # Written in pieces, each up to a record after which a HEARTBEAT of ours goes
@@ -787,65 +782,153 @@ class BulkFeed:
         decoded: _Decoded,
         start: int,
         stop: int,
-        stream: Stream,
+        stream: Stream | None,
         steps: _Steps | None,
-        first: int,
-        last: int,
+        attitudes: np.ndarray,
         last_t_before: float | None,
     ) -> np.ndarray | None:
-        """Steps [first, last) (those of records [start, stop)) booked, and compared
-        with the truth among the records (``last_t_before``: the vehicle's time before
-        them); their estimated indices, from ``first``."""
-        vehicle = self.pipeline.vehicles[(stream.key.system, stream.key.component)]
-        vehicle.last_t = last_t_before
+        """The steps (those of records [start, stop)) booked, and compared with the truth
+        and the autopilot's ATTITUDE (``attitudes``: their rows) among the records, in
+        order (``last_t_before``: the vehicle's time before them); the indices of those
+        estimated (not skipped), None if there are no steps."""
         kept = None
         index = np.empty(0, dtype=np.int64)
-        if steps is not None and last > first:
-            kept = self._book(stream, vehicle, steps, first, last)
-            index = first + kept
+        truth_rows = index
+        stream_last_t = None  # the stream's last estimate before the records
+        if stream is not None:
+            vehicle = self.pipeline.vehicles[(stream.key.system, stream.key.component)]
+            vehicle.last_t = last_t_before
+            stream_last_t = stream.stats.last_t
+            if steps is not None and steps.rows.shape[0]:
+                kept = index = self._book(stream, vehicle, steps)
+            truth_rows = start + np.flatnonzero(decoded.kind[start:stop] == TRUTH)
         t = steps.t[index] if steps is not None else np.empty(0)
         euler = steps.euler[index] if steps is not None else np.empty((0, 3))
         rows = steps.rows[index] if steps is not None else index
-        truth_rows = start + np.flatnonzero(decoded.kind[start:stop] == TRUTH)
-        truth_t = self._compare(stream, decoded, t, euler, rows, truth_rows, last_t_before)
-        sinks = self.pipeline.sinks
-        if sinks and steps is not None and index.shape[0]:
-            series = steps.series
-            for sink in sinks:
-                sink.on_estimates(
-                    stream,
-                    t,
-                    euler,
-                    steps.gyro[index],
-                    steps.accel[index],
-                    series.accel_used[index],
-                    steps.flags[index],
-                    steps.q[index],
-                    series,
-                    index,
-                    records.stamp[rows],
-                    steps.processing,
-                )
-        if sinks and stream.primary:
-            compared = ~np.isnan(truth_t)
-            for sink in sinks:
-                sink.on_references(
-                    stream,
-                    "truth",
-                    truth_t[compared],
-                    decoded.truth[truth_rows[compared]],
-                    records.stamp[truth_rows[compared]],
-                )
+        autopilot = self._autopilot(records, decoded, attitudes, stream, rows, t, stream_last_t)
+        truth_t = np.empty(0)
+        if stream is not None:
+            truth_t = self._compare(
+                stream, decoded, t, euler, rows, truth_rows, last_t_before, autopilot
+            )
+        for other in autopilot.streams:
+            if other is not stream:  # (an ATTITUDE of a stream not estimated here)
+                mine = autopilot.of(other)
+                references = np.full(int(np.count_nonzero(mine)), REFERENCE)
+                other.vs_autopilot.add_many(references, autopilot.t[mine], autopilot.euler[mine])
+        if self.pipeline.sinks:
+            self._tell_sinks(records, decoded, stream, steps, index, truth_rows, truth_t, autopilot)
         return kept
 
-    def _book(
-        self, stream: Stream, vehicle: Vehicle, steps: _Steps, first: int, last: int
-    ) -> np.ndarray:
-        """Count and report what steps [first, last) did, as Pipeline._step does sample by
-        sample; returns the indices (from ``first``) of those estimated (not skipped)."""
+    def _autopilot(
+        self,
+        records: bulk.RecordIndex,
+        decoded: _Decoded,
+        rows: np.ndarray,
+        stream: Stream | None,
+        estimate_rows: np.ndarray,
+        estimate_t: np.ndarray,
+        last_t: float | None,
+    ) -> _Autopilot:
+        """The autopilot's ATTITUDE at these rows, as Pipeline.on_message takes each: the
+        stream it is compared with (if any), its time and angles. ``stream`` is estimated
+        among them: its estimates' rows and times, and its last estimate's time before
+        them (``last_t``), say when the autopilot restarted as the pipeline sees it."""
+        target = np.full(rows.shape[0], -1, dtype=np.int64)
+        streams: list[Stream] = []
+        t = autopilot_time(decoded.attitude_ms[rows])
+        if not rows.shape[0]:
+            return _Autopilot(rows, target, streams, t, decoded.attitude[rows])
+        code = (records.system[rows] << 8) | records.component[rows]
+        for value in _distinct(code):  # (nearly always one vehicle)
+            compared = self.pipeline.autopilot_stream(value >> 8, value & 0xFF)
+            if compared is None:
+                continue
+            mine = np.flatnonzero(code == value)
+            before = math.nan if compared.stats.last_t is None else compared.stats.last_t
+            if compared is stream:
+                # the stream's last estimate before each (its stats.last_t there)
+                upto = np.searchsorted(estimate_rows, rows[mine])
+                before = np.where(
+                    upto > 0,
+                    estimate_t[np.maximum(upto - 1, 0)] if estimate_t.shape[0] else math.nan,
+                    math.nan if last_t is None else last_t,
+                )
+            mine = mine[~autopilot_restarted(t[mine], before)]
+            known = [k for k, other in enumerate(streams) if other is compared]
+            target[mine] = known[0] if known else len(streams)
+            if not known:
+                streams.append(compared)
+        return _Autopilot(rows, target, streams, t, decoded.attitude[rows])
+
+    def _tell_sinks(
+        self,
+        records: bulk.RecordIndex,
+        decoded: _Decoded,
+        stream: Stream | None,
+        steps: _Steps | None,
+        index: np.ndarray,
+        truth_rows: np.ndarray,
+        truth_t: np.ndarray,
+        autopilot: _Autopilot,
+    ) -> None:
+        """The estimates (steps ``index``) and the references compared with them to the
+        sinks, in pieces that end at the autopilot's ATTITUDE records: each piece's
+        estimates, then its truth, then the ATTITUDE. (A recorder sends what it holds in
+        batches, the batch's references beside its estimates: the pieces keep the
+        batches those records make when each goes alone.)"""
+        sinks = self.pipeline.sinks
+        rows = steps.rows[index] if steps is not None else index
+        estimate_ends = np.searchsorted(rows, autopilot.rows).tolist()
+        truth_ends = np.searchsorted(truth_rows, autopilot.rows).tolist()
+        first = first_truth = 0
+        for k in range(autopilot.rows.shape[0] + 1):
+            last = estimate_ends[k] if k < len(estimate_ends) else rows.shape[0]
+            last_truth = truth_ends[k] if k < len(truth_ends) else truth_rows.shape[0]
+            if stream is not None and steps is not None and last > first:
+                piece = index[first:last]
+                for sink in sinks:
+                    sink.on_estimates(
+                        stream,
+                        steps.t[piece],
+                        steps.euler[piece],
+                        steps.gyro[piece],
+                        steps.accel[piece],
+                        steps.series.accel_used[piece],
+                        steps.flags[piece],
+                        steps.q[piece],
+                        steps.series,
+                        piece,
+                        records.stamp[rows[first:last]],
+                        steps.processing,
+                    )
+            if stream is not None and stream.primary:
+                truth = truth_rows[first_truth:last_truth]
+                truth_at = truth_t[first_truth:last_truth]
+                compared = ~np.isnan(truth_at)
+                for sink in sinks:
+                    sink.on_references(
+                        stream,
+                        "truth",
+                        truth_at[compared],
+                        decoded.truth[truth[compared]],
+                        records.stamp[truth[compared]],
+                    )
+            if k < autopilot.target.shape[0] and autopilot.target[k] >= 0:
+                other = autopilot.streams[int(autopilot.target[k])]
+                t = float(autopilot.t[k])
+                euler = tuple(autopilot.euler[k].tolist())
+                stamp = int(records.stamp[autopilot.rows[k]])
+                for sink in sinks:
+                    sink.on_reference(other, "autopilot", t, euler, stamp)
+            first, first_truth = last, last_truth
+
+    def _book(self, stream: Stream, vehicle: Vehicle, steps: _Steps) -> np.ndarray:
+        """Count and report what the steps did, as Pipeline._step does sample by sample;
+        returns the indices of those estimated (not skipped)."""
         stats = stream.stats
-        flags = steps.flags[first:last]
-        t = steps.t[first:last]
+        flags = steps.flags
+        t = steps.t
         stats.received += flags.shape[0]
         skipped = (flags & StepFlags.SKIPPED) != 0
         kept = np.flatnonzero(~skipped)
@@ -883,9 +966,9 @@ class BulkFeed:
         if stats.first_t is None:
             stats.first_t = float(t[kept[0]])
         stats.last_t = float(t[kept[-1]])
-        stats.mag_usable += int(np.count_nonzero(steps.usable_mag[first:last][kept]))
-        stats.mag_taken += int(np.count_nonzero(steps.taken_mag[first:last][kept]))
-        stats.mag_used += int(np.count_nonzero(steps.mag_used[first:last][kept]))
+        stats.mag_usable += int(np.count_nonzero(steps.usable_mag[kept]))
+        stats.mag_taken += int(np.count_nonzero(steps.taken_mag[kept]))
+        stats.mag_used += int(np.count_nonzero(steps.mag_used[kept]))
         vehicle.last_t = stats.last_t
         return kept
 
@@ -898,21 +981,25 @@ class BulkFeed:
         rows: np.ndarray,
         truth_rows: np.ndarray,
         last_t_before: float | None,
+        autopilot: _Autopilot,
     ) -> np.ndarray:
-        """Our estimates (at ``rows``), and the SIMSTATE truth between them, into the
-        comparisons in the order they came; each truth at the time of the last estimate
-        before it, which is returned (NaN: none yet, so not compared)."""
-        if t.shape[0]:
+        """Our estimates (at ``rows``), and the SIMSTATE truth and the autopilot's
+        ATTITUDE between them, into the comparisons in the order they came; each truth
+        at the time of the last estimate before it, which is returned (NaN: none yet, so
+        not compared)."""
+        mine = autopilot.of(stream)
+        if mine.any():
+            kinds, sort = _in_order(rows, autopilot.rows[mine])
+            times = np.concatenate([t, autopilot.t[mine]])[sort]
+            angles = np.concatenate([euler, autopilot.euler[mine]])[sort]
+            stream.vs_autopilot.add_many(kinds, times, angles)
+        elif t.shape[0]:
             stream.vs_autopilot.add_many(np.full(t.shape[0], ESTIMATE), t, euler)
         if not truth_rows.shape[0]:
             if t.shape[0]:
                 stream.vs_truth.add_many(np.full(t.shape[0], ESTIMATE), t, euler)
             return np.empty(0)
-        # a truth record after its sample's record: estimates first at equal places
-        sort = np.argsort(np.concatenate([rows, truth_rows]), kind="stable")
-        kinds = np.concatenate(
-            [np.full(t.shape[0], ESTIMATE), np.full(truth_rows.shape[0], REFERENCE)]
-        )[sort]
+        kinds, sort = _in_order(rows, truth_rows)
         euler_all = np.concatenate([euler, decoded.truth[truth_rows]])[sort]
         times = np.concatenate([t, np.full(truth_rows.shape[0], math.nan)])[sort]
         times = _times_of_references(times, kinds, last_t_before)
@@ -1052,6 +1139,45 @@ def _follow_many(
             accel[k + 1] = gps.accel
         accel_t[k + 1], fix_t[k + 1], airspeed_t[k + 1] = gps.accel_t, gps.fix_t, vehicle.airspeed_t
     return _AidingHistory(accel, accel_t, fix_t, airspeed_t)
+
+
+class _Autopilot(NamedTuple):
+    """The autopilot's ATTITUDE records of a stretch, as the comparisons take them."""
+
+    rows: np.ndarray  # the records, in order
+    target: np.ndarray  # each one's stream (an index of ``streams``); -1: not compared
+    streams: list[Stream]
+    t: np.ndarray  # s, on the stream's timeline
+    euler: np.ndarray  # (n, 3) rad
+
+    def of(self, stream: Stream) -> np.ndarray:
+        """Which are compared with this stream."""
+        k = next((k for k, other in enumerate(self.streams) if other is stream), -2)
+        return self.target == k
+
+
+def _vehicle_times(
+    steps: _Steps | None, estimated_at: np.ndarray, rows: np.ndarray, before: float | None
+) -> list[float | None]:
+    """A vehicle's time at each of these rows (in order), as the pipeline has it there:
+    its last estimate's (``estimated_at``: the steps estimated), else ``before``."""
+    if steps is None or not estimated_at.shape[0]:
+        return [before] * rows.shape[0]
+    upto = np.searchsorted(estimated_at, np.searchsorted(steps.rows, rows))
+    at = steps.t[estimated_at[np.maximum(upto - 1, 0)]].tolist()
+    return [at[k] if u else before for k, u in enumerate(upto.tolist())]
+
+
+def _in_order(rows: np.ndarray, reference_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Estimates (at ``rows``) and references (at ``reference_rows``) in the order of
+    their records: the kinds (ESTIMATE, REFERENCE), and the order of the estimates
+    followed by the references. (A reference's record comes after its sample's:
+    estimates first at equal places.)"""
+    sort = np.argsort(np.concatenate([rows, reference_rows]), kind="stable")
+    kinds = np.concatenate(
+        [np.full(rows.shape[0], ESTIMATE), np.full(reference_rows.shape[0], REFERENCE)]
+    )[sort]
+    return kinds, sort
 
 
 def _times_of_references(times: np.ndarray, kinds: np.ndarray, before: float | None) -> np.ndarray:

@@ -56,6 +56,9 @@ MAX_ACCEL = 50.0 * 9.80665  # m/s²
 MAX_MAG = 1000.0  # µT (10 gauss; the Earth's field is 25–65 µT)
 # Without a magnetometer for this long, a stream is reported as 6-D (once).
 MAG_WAIT = 2.0  # s
+# An autopilot's ATTITUDE this far before its stream's last estimate was sent before the
+# autopilot restarted (its IMU not back yet): it is not compared.
+AUTOPILOT_RESTART_LAG = 60.0  # s
 
 # Message preference for input.imu = "auto": SI floats first, then ArduPilot's primary IMU.
 _PREFERENCE = {name: rank for rank, name in enumerate(IMU_MESSAGES)}
@@ -293,7 +296,8 @@ class Pipeline:
         if name in _IMU_NAMES:
             self._on_imu(message, system, component)
         elif name == "ATTITUDE":
-            self._on_reference(system, component, message, "autopilot", message.time_boot_ms * 1e-3)
+            t = autopilot_time(message.time_boot_ms)
+            self._on_reference(system, component, message, "autopilot", t)
         elif name == "SIMSTATE":
             vehicle = self.vehicles.get((system, 1)) or self._any_vehicle(system)
             if vehicle is not None and vehicle.last_t is not None:
@@ -629,22 +633,33 @@ class Pipeline:
             self.emit(attitude)
         stream.stats.answered += 1
 
+    def autopilot_stream(self, system: int, component: int) -> Stream | None:
+        """The stream an autopilot's ATTITUDE from (system, component) is compared with
+        (None: none, or the message is ours)."""
+        if self._is_ours(system, component):
+            return None
+        return self._reference_stream(system, component)
+
+    def _reference_stream(self, system: int, component: int) -> Stream | None:
+        """The stream a reference attitude of vehicle (system, component) is compared
+        with: the vehicle's primary one, once known."""
+        vehicle = self.vehicles.get((system, component))
+        if vehicle is None or vehicle.primary is None:
+            return None
+        return self.streams.get(vehicle.primary)
+
     def _on_reference(
         self, system: int, component: int, message: Any, source: str, t: float
     ) -> None:
-        vehicle = self.vehicles.get((system, component))
-        if vehicle is None or vehicle.primary is None:
-            return
-        stream = self.streams.get(vehicle.primary)
+        stream = self._reference_stream(system, component)
         if stream is None:
             return
         euler = (float(message.roll), float(message.pitch), float(message.yaw))
         if source == "truth":
             stream.vs_truth.add_reference(t, euler)
+        elif autopilot_restarted(t, stream.stats.last_t):
+            return
         else:
-            last_t = stream.stats.last_t
-            if last_t is not None and t < last_t - 60.0:  # the autopilot restarted before the IMU
-                return
             stream.vs_autopilot.add_reference(t, euler)
         for sink in self.sinks:
             sink.on_reference(stream, source, t, euler, self._record_us)
@@ -827,6 +842,19 @@ _REQUESTS = frozenset(
         "PARAM_SET",
     )
 )
+
+
+def autopilot_time(time_boot_ms: Any) -> Any:
+    """An autopilot's ATTITUDE's time (s) on its stream's timeline, from its
+    ``time_boot_ms`` (a number, or an array of them)."""
+    return time_boot_ms * 1e-3
+
+
+def autopilot_restarted(t: Any, last_t: Any) -> Any:
+    """Whether an autopilot's ATTITUDE at ``t`` was sent before the autopilot restarted,
+    its stream's last estimate being at ``last_t`` (None or NaN: none yet, so not);
+    numbers, or arrays of them."""
+    return last_t is not None and t < last_t - AUTOPILOT_RESTART_LAG
 
 
 def _enum_name(enum: str, value: int) -> str:
