@@ -22,7 +22,8 @@ them):
 
 * decode: the tlog mapped and indexed, CRCs checked (``TlogReader.scan``), the IMU
   payloads gathered and made SI (``mavlink.bulk.decode_payloads``, ``imu_fields``),
-  the other messages the replay decodes (ATTITUDE, HEARTBEAT) one by one as it does
+  the autopilot's ATTITUDE (``decode_payloads``), the other messages the replay
+  decodes (HEARTBEAT) one by one as it does
   (``mavlink.wire.decode_datagram``);
 * filter: ``Estimator.update_batch`` over the decoded samples;
 * encode: the answers, ATTITUDE and ATTITUDE_QUATERNION per sample
@@ -79,9 +80,11 @@ STAGES = ("decode", "filter", "encode", "write")
 IMU = "RAW_IMU"
 IMU_ID = mavlink2.MAVLINK_MSG_ID_RAW_IMU
 IMU_DTYPE = bulk.wire_dtype(mavlink2.MAVLink_raw_imu_message)
+ATTITUDE_ID = mavlink2.MAVLINK_MSG_ID_ATTITUDE
 # What else the replay decodes of this log, one record at a time: the messages it
-# wants (REPLAY_MESSAGES) other than the IMU's.
-ONE_BY_ONE = np.array(sorted(REPLAY_MESSAGES - {IMU_ID}), dtype=np.int64)
+# wants (REPLAY_MESSAGES) other than the IMU's and the autopilot's ATTITUDE, which it
+# decodes in bulk.
+ONE_BY_ONE = np.array(sorted(REPLAY_MESSAGES - {IMU_ID, ATTITUDE_ID}), dtype=np.int64)
 
 # The commands timed run as on a user's machine, where Python keeps the bytecode it
 # compiles: an environment that forbids that (PYTHONDONTWRITEBYTECODE, as a sandbox's
@@ -189,6 +192,8 @@ def time_stages(log: Path, out: Path) -> StageTimes:
             rows = np.flatnonzero(records.message_id == IMU_ID)
             payloads = bulk.decode_payloads(data, records.part(rows), IMU_DTYPE)
             fields = bulk.imu_fields(IMU, payloads)
+            attitudes = np.flatnonzero(records.message_id == ATTITUDE_ID)
+            bulk.decode_payloads(data, records.part(attitudes), bulk.ATTITUDE_DTYPE)
             for row in np.flatnonzero(np.isin(records.message_id, ONE_BY_ONE)).tolist():
                 packet = data[int(records.start[row]) + 8 : int(records.end[row])].tobytes()
                 if wire.decode_datagram(packet) is None:
