@@ -343,7 +343,7 @@ def test_heading_update_covariance_is_the_joseph_form_with_the_full_jacobian(
     mag_update(s, c, t, body, dt)
     assert s["mag_used"] == 1
     np.testing.assert_allclose(s["q"], q, atol=1e-12)  # zero innovation: no move
-    K = s["w_Km"][:n, 0].copy()
+    K = s["w_heading_K"][:n, 0].copy()
     R_bar = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix()
     vertical = np.array([0.0, 0.0, 1.0]) if error == "left" else R_bar.T @ [0.0, 0.0, 1.0]
     body_vertical = R_bar.T @ [0.0, 0.0, 1.0]

@@ -47,8 +47,8 @@ def align(
     pitch = math.atan2(accel[0], math.hypot(accel[1], accel[2]))
     yaw = 0.0
     if keep_heading:
-        so3.euler_zyx_from_quat_into(s.q, s.w_v3)
-        yaw = s.w_v3[2]
+        so3.euler_zyx_from_quat_into(s.q, s.w_alignment_euler)
+        yaw = s.w_alignment_euler[2]
     so3.quat_from_euler_zyx_into(roll, pitch, yaw, s.q)
     so3.quat_normalize_into(s.q)
     n = c.n_state

@@ -124,14 +124,14 @@ def world_move_into(q_new: np.ndarray, q_old: np.ndarray, W: np.ndarray, work4: 
 def reset_covariance(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
     """P ← T P Tᵀ, T = blockdiag(T_θ(δ̂θ), I, W, W, W): the reset of the covariance.
 
-    Called right after :func:`move_nominal` moved the reference from w_p4 to
-    q: the low-pass's errors turn with the world-frame move's turn about the
+    Called right after :func:`move_nominal` moved the reference from w_frames_q_from
+    to q: the low-pass's errors turn with the world-frame move's turn about the
     vertical (W, :func:`world_move_into`); its vectors turned with the whole move.
     """
-    reset_jacobian_into(dx[:3], c.error, c.chart, c.reset, s.w_m33)
-    world_move_into(s.q, s.w_p4, s.w_W, s.w_q4)
+    reset_jacobian_into(dx[:3], c.error, c.chart, c.reset, s.w_frames_m33)
+    world_move_into(s.q, s.w_frames_q_from, s.w_frames_W, s.w_frames_q4)
     n = c.n_state
-    transform_blocks(s, c, s.P[:n, :n], s.w_m33, s.w_W, True)
+    transform_blocks(s, c, s.P[:n, :n], s.w_frames_m33, s.w_frames_W, True)
 
 
 @inplace_kernel
@@ -141,16 +141,16 @@ def move_nominal(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> None:
     The estimated world frame moves with the attitude (by q⁺ ⊗ q⁻¹), so the
     world-frame low-pass of the specific force is rotated along.
     """
-    copy_into(s.w_p4, s.q)
-    retract_into(s.w_p4, dx[:3], c.error, c.chart, s.q, s.w_q4)
+    copy_into(s.w_frames_q_from, s.q)
+    retract_into(s.w_frames_q_from, dx[:3], c.error, c.chart, s.q, s.w_frames_q4)
     for i in range(3):
         s.b[i] += dx[3 + i]
     if c.accel_lowpass_time > 0.0:
-        so3.quat_divide_right_into(s.q, s.w_p4, s.w_q4)
+        so3.quat_divide_right_into(s.q, s.w_frames_q_from, s.w_frames_q4)
         for stage in range(2):
-            so3.quat_rotate_into(s.w_q4, s.accel_world_lp[stage], s.accel_world_lp[stage])
+            so3.quat_rotate_into(s.w_frames_q4, s.accel_world_lp[stage], s.accel_world_lp[stage])
         # the motion's velocity is a world vector too; only its horizontal part is kept
-        so3.quat_rotate_into(s.w_q4, s.motion_velocity, s.motion_velocity)
+        so3.quat_rotate_into(s.w_frames_q4, s.motion_velocity, s.motion_velocity)
         s.motion_velocity[2] = 0.0
 
 
@@ -162,15 +162,15 @@ def apply_correction(s: StateRecord, c: CoefficientsRecord, dx: np.ndarray) -> N
 
 
 @inplace_kernel
-def error_frame_from_world(s: StateRecord, c: CoefficientsRecord) -> None:
-    """w_m33 = the matrix taking a world-frame rotation vector to the error's frame."""
+def error_frame_from_world(s: StateRecord, c: CoefficientsRecord, M: np.ndarray) -> None:
+    """M (3×3) = the matrix taking a world-frame rotation vector to the error's frame."""
     if c.error == ERROR_LEFT:
-        set_identity(s.w_m33)
+        set_identity(M)
     else:
-        so3.matrix_from_quat_into(s.q, s.w_R)
+        so3.matrix_from_quat_into(s.q, s.w_frames_R)
         for i in range(3):
             for j in range(3):
-                s.w_m33[i, j] = s.w_R[j, i]  # Rᵀ: world → body
+                M[i, j] = s.w_frames_R[j, i]  # Rᵀ: world → body
 
 
 @inplace_kernel
@@ -202,20 +202,20 @@ def set_attitude_covariance_world(
 @inplace_kernel
 def attitude_covariance_to_world(s: StateRecord, c: CoefficientsRecord) -> None:
     """P's δθ rows and columns in world axes (a change of coordinates, not a move of
-    the reference); leaves M (world → error frame) in w_m33 for the way back."""
-    error_frame_from_world(s, c)
+    the reference); leaves M (world → error frame) in w_frames_m33 for the way back."""
+    error_frame_from_world(s, c, s.w_frames_m33)
     for i in range(3):
         for j in range(3):
-            s.w_n33[i, j] = s.w_m33[j, i]  # Mᵀ: error frame → world
+            s.w_frames_n33[i, j] = s.w_frames_m33[j, i]  # Mᵀ: error frame → world
     n = c.n_state
-    transform_blocks(s, c, s.P[:n, :n], s.w_n33, s.w_W, False)
+    transform_blocks(s, c, s.P[:n, :n], s.w_frames_n33, s.w_frames_W, False)
 
 
 @inplace_kernel
 def attitude_covariance_from_world(s: StateRecord, c: CoefficientsRecord) -> None:
-    """Undo :func:`attitude_covariance_to_world` (M still in w_m33)."""
+    """Undo :func:`attitude_covariance_to_world` (M still in w_frames_m33)."""
     n = c.n_state
-    transform_blocks(s, c, s.P[:n, :n], s.w_m33, s.w_W, False)
+    transform_blocks(s, c, s.P[:n, :n], s.w_frames_m33, s.w_frames_W, False)
 
 
 @inplace_kernel
@@ -234,15 +234,14 @@ def horizontal_times(
 
 
 @inplace_kernel
-def aided_coupling(s: StateRecord, c: CoefficientsRecord) -> None:
-    """w_aid = M = [a]× W: how the attitude error moves an aided sample (in the world)."""
-    M = s.w_aid
+def aided_coupling(s: StateRecord, c: CoefficientsRecord, M: np.ndarray) -> None:
+    """M (3×3) = [a]× W: how the attitude error moves an aided sample (in the world)."""
     so3.hat_into(s.linear_accel, M)
     if c.error != ERROR_LEFT:
-        R = s.w_R_tilt
+        R = s.w_frames_R
         so3.matrix_from_quat_into(s.q, R)
         for i in range(3):
             r0, r1, r2 = M[i, 0], M[i, 1], M[i, 2]
             for j in range(3):
-                s.w_m33[i, j] = r0 * R[0, j] + r1 * R[1, j] + r2 * R[2, j]
-        copy_matrix_into(M, s.w_m33)
+                s.w_frames_m33[i, j] = r0 * R[0, j] + r1 * R[1, j] + r2 * R[2, j]
+        copy_matrix_into(M, s.w_frames_m33)

@@ -103,13 +103,34 @@ def _drop_heading_gain(s: StateRecord, c: CoefficientsRecord, K: np.ndarray, m: 
 
 @inplace_kernel
 def _gravity_residual(s: StateRecord, q: np.ndarray, r: np.ndarray) -> None:
-    gravity.residual_into(q, s.w_z, s.w_Bz, r, s.w_R, s.w_h, s.w_u3)
+    gravity.residual_into(
+        q,
+        s.w_gravity_update_z,
+        s.w_gravity_update_Bz,
+        r,
+        s.w_gravity_update_R,
+        s.w_gravity_update_h,
+        s.w_gravity_update_rho,
+    )
 
 
 @inplace_kernel
 def _gravity_jacobian(s: StateRecord, c: CoefficientsRecord) -> None:
-    """w_H = [H_θ, 0, H_ε] at the point where :func:`_gravity_residual` left w_R, w_h."""
-    gravity.jacobian_into(s.w_R, s.w_h, s.w_z, s.w_Bz, c.error, s.w_H, s.w_m33, s.w_n33)
+    """H (w_gravity_update_H) = [H_θ, 0, H_ε] at the point where
+    :func:`_gravity_residual` left R̄ and h."""
+    H = s.w_gravity_update_H
+    R = s.w_gravity_update_R
+    Bz = s.w_gravity_update_Bz
+    gravity.jacobian_into(
+        R,
+        s.w_gravity_update_h,
+        s.w_gravity_update_z,
+        Bz,
+        c.error,
+        H,
+        s.w_gravity_update_m33,
+        s.w_gravity_update_n33,
+    )
     if c.n_state == N_ERROR:
         return
     # H_ε = (1/g) B_zᵀ R̄ᵀ [e₃]×: R̄ᵀ[e₃]× e_x = R̄ᵀ e_y, e_y ↦ −R̄ᵀ e_x (e_z ↦ 0,
@@ -117,18 +138,15 @@ def _gravity_jacobian(s: StateRecord, c: CoefficientsRecord) -> None:
     inv_g = 1.0 / c.gravity
     for k in range(2):
         for i in range(RATE, c.n_state):
-            s.w_H[k, i] = 0.0
-        s.w_H[k, EPS] = inv_g * (
-            s.w_Bz[0, k] * s.w_R[1, 0] + s.w_Bz[1, k] * s.w_R[1, 1] + s.w_Bz[2, k] * s.w_R[1, 2]
-        )
-        s.w_H[k, EPS + 1] = -inv_g * (
-            s.w_Bz[0, k] * s.w_R[0, 0] + s.w_Bz[1, k] * s.w_R[0, 1] + s.w_Bz[2, k] * s.w_R[0, 2]
-        )
+            H[k, i] = 0.0
+        H[k, EPS] = inv_g * (Bz[0, k] * R[1, 0] + Bz[1, k] * R[1, 1] + Bz[2, k] * R[1, 2])
+        H[k, EPS + 1] = -inv_g * (Bz[0, k] * R[0, 0] + Bz[1, k] * R[0, 1] + Bz[2, k] * R[0, 2])
 
 
 @inplace_kernel
 def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: float) -> float:
-    """C = Pi Hᵀ (w_C), S = H C + var I (w_S), K = C S⁻¹ (w_K); returns the NIS of w_r.
+    """C = Pi Hᵀ, S = H C + var I, K = C S⁻¹ (w_gravity_update_C, _S, _K); returns the
+    NIS of the residual r (w_gravity_update_r).
 
     The gravity Jacobian (:func:`_gravity_jacobian`) is zero on the bias, ḟ and
     v: the sums run over its other columns only (δθ, ε_x, ε_y), in
@@ -136,9 +154,10 @@ def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: floa
     considered rows are zero (Schmidt: ε's mean is never estimated).
     """
     n = c.n_state
-    H = s.w_H
-    C = s.w_C
-    K = s.w_K
+    H = s.w_gravity_update_H
+    C = s.w_gravity_update_C
+    K = s.w_gravity_update_K
+    S = s.w_gravity_update_S
     considered = n > N_ERROR
     for i in range(n):
         for k in range(2):
@@ -157,11 +176,11 @@ def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: floa
             if considered:
                 acc += H[a, EPS] * C[EPS, b]
                 acc += H[a, EPS + 1] * C[EPS + 1, b]
-            s.w_S[a, b] = acc
-    s01 = 0.5 * (s.w_S[0, 1] + s.w_S[1, 0])
-    s.w_S[0, 1] = s01
-    s.w_S[1, 0] = s01
-    s00, s11 = s.w_S[0, 0], s.w_S[1, 1]
+            S[a, b] = acc
+    s01 = 0.5 * (S[0, 1] + S[1, 0])
+    S[0, 1] = s01
+    S[1, 0] = s01
+    s00, s11 = S[0, 0], S[1, 1]
     det = s00 * s11 - s01 * s01
     i00, i01, i11 = s11 / det, -s01 / det, s00 / det
     for i in range(N_ERROR):
@@ -172,7 +191,7 @@ def _solve_gain(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, var: floa
         K[i, 1] = 0.0
     if _gravity_leaves_heading(s):
         _drop_heading_gain(s, c, K, 2)
-    r0, r1 = s.w_r[0], s.w_r[1]
+    r0, r1 = s.w_gravity_update_r[0], s.w_gravity_update_r[1]
     return r0 * r0 * i00 + 2.0 * r0 * r1 * i01 + r1 * r1 * i11
 
 
@@ -189,7 +208,7 @@ def _joseph_update(s: StateRecord, c: CoefficientsRecord, Pi: np.ndarray, from_p
     P = s.P[:n, :n]
     if not from_prior:
         copy_matrix_into(P, Pi)
-    gain_update(P, s.w_K[:n], s.w_C[:n], s.w_S, 2)
+    gain_update(P, s.w_gravity_update_K[:n], s.w_gravity_update_C[:n], s.w_gravity_update_S, 2)
 
 
 @inplace_kernel
@@ -203,33 +222,38 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
     ε's estimate is what the Schmidt filter keeps, zero.
     """
     n = c.n_state
-    copy_into(s.w_prior_q, s.q)
-    copy_into(s.w_prior_b, s.b)
+    prior_q = s.w_gravity_update_prior_q
+    prior_b = s.w_gravity_update_prior_b
+    copy_into(prior_q, s.q)
+    copy_into(prior_b, s.b)
     # the prior seen from the iterate: P itself at the first (read only until
-    # the Joseph form), its transport T P Tᵀ into w_A at later ones
+    # the Joseph form), its transport T P Tᵀ into w_gravity_update_A at later ones
     Pi = s.P[:n, :n]
-    d = s.w_d
-    m = s.w_m
-    dx = s.w_dx
-    H = s.w_H
-    K = s.w_K
-    r = s.w_r
+    d = s.w_gravity_update_d
+    m = s.w_gravity_update_m
+    dx = s.w_gravity_update_dx
+    H = s.w_gravity_update_H
+    K = s.w_gravity_update_K
+    r = s.w_gravity_update_r
+    T = s.w_gravity_update_m33  # the reset Jacobian at the iterate
+    W = s.w_gravity_update_W
+    q4 = s.w_gravity_update_q4
     for it in range(c.max_iterations):
         if it == 0:
             for i in range(n):
                 m[i] = 0.0
         else:
-            local_into(s.q, s.w_prior_q, c.error, c.chart, d[:3], s.w_q4)
+            local_into(s.q, prior_q, c.error, c.chart, d[:3], q4)
             for i in range(3):
-                d[3 + i] = s.b[i] - s.w_prior_b[i]
+                d[3 + i] = s.b[i] - prior_b[i]
             for i in range(EPS, n):
                 d[i] = 0.0
-            reset_jacobian_into(d[:3], c.error, c.chart, c.reset, s.w_m33)
-            world_move_into(s.q, s.w_prior_q, s.w_W, s.w_q4)
-            Pi = s.w_A[:n, :n]
+            reset_jacobian_into(d[:3], c.error, c.chart, c.reset, T)
+            world_move_into(s.q, prior_q, W, q4)
+            Pi = s.w_gravity_update_A[:n, :n]
             copy_matrix_into(Pi, s.P[:n, :n])
-            transform_blocks(s, c, Pi, s.w_m33, s.w_W, True)
-            T = s.w_m33  # m = −T d: only δθ is transported (d's considered part is 0)
+            transform_blocks(s, c, Pi, T, W, True)
+            # m = −T d: only δθ is transported (d's considered part is 0)
             for i in range(3):
                 m[i] = -(T[i, 0] * d[0] + T[i, 1] * d[1] + T[i, 2] * d[2])
             for i in range(3, n):
@@ -276,16 +300,17 @@ def _iterated_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: fl
 @inplace_kernel
 def _sigma_point_update(s: StateRecord, c: CoefficientsRecord, var: float, gate: float) -> bool:
     """Unscented update of the error about the nominal, then the measurement reset."""
-    if not sigma_points(s, c):  # P lost definiteness: the linearised update still works
+    chi = s.w_gravity_update_sigma_chi
+    if not sigma_points(s, c, chi):  # P lost definiteness: the linearised update still works
         return _iterated_update(s, c, var, gate)
     n = c.n_state
     n_sigma = 2 * n + 1
-    chi = s.w_sigma_chi
-    rs = s.w_sigma_r
-    H = s.w_H
+    rs = s.w_gravity_update_sigma_r
+    H = s.w_gravity_update_H
     for k in range(n_sigma):
-        retract_into(s.q, chi[k, :3], c.error, c.chart, s.w_sigma_q[k], s.w_q4)
-        _gravity_residual(s, s.w_sigma_q[k], rs[k])
+        qk = s.w_gravity_update_point_q  # the sigma point's attitude, one point at a time
+        retract_into(s.q, chi[k, :3], c.error, c.chart, qk, s.w_gravity_update_q4)
+        _gravity_residual(s, qk, rs[k])
         if n > N_ERROR:  # ε enters linearly: r + H_ε ε, H_ε at this point
             _gravity_jacobian(s, c)
             for i in range(EPS, n):
@@ -296,8 +321,8 @@ def _sigma_point_update(s: StateRecord, c: CoefficientsRecord, var: float, gate:
     for k in range(1, n_sigma):
         rbar0 += c.sigma_wi * rs[k, 0]
         rbar1 += c.sigma_wi * rs[k, 1]
-    S = s.w_S
-    C = s.w_C
+    S = s.w_gravity_update_S
+    C = s.w_gravity_update_C
     S[0, 0], S[0, 1], S[1, 0], S[1, 1] = var, 0.0, 0.0, var
     for i in range(n):
         C[i, 0] = 0.0
@@ -322,7 +347,7 @@ def _sigma_point_update(s: StateRecord, c: CoefficientsRecord, var: float, gate:
     if gate > 0.0 and not nis <= gate:
         return False
     # K = C S⁻¹ with the considered rows zero (Schmidt); δ̂ = −K r̄ as in the EKF
-    K = s.w_K
+    K = s.w_gravity_update_K
     for i in range(n):
         if i >= EPS:
             K[i, 0] = 0.0
@@ -333,10 +358,10 @@ def _sigma_point_update(s: StateRecord, c: CoefficientsRecord, var: float, gate:
     if _gravity_leaves_heading(s):
         _drop_heading_gain(s, c, K, 2)
     for i in range(n):
-        s.w_dx[i] = -(K[i, 0] * rbar0 + K[i, 1] * rbar1)
+        s.w_gravity_update_dx[i] = -(K[i, 0] * rbar0 + K[i, 1] * rbar1)
     gain_update(s.P[:n, :n], K[:n], C[:n], S, 2)
     s.iterations = 1
-    apply_correction(s, c, s.w_dx)
+    apply_correction(s, c, s.w_gravity_update_dx)
     return True
 
 
@@ -379,24 +404,25 @@ def accel_update(
     flush_pending(s, c)
     lowpass = c.accel_lowpass_time > 0.0
     aided = vector_is_finite(s.linear_accel)
+    q4 = s.w_gravity_update_q4
+    f = s.w_gravity_update_f  # the specific force measured, body frame
     if lowpass:
-        so3.quat_conjugate_into(s.q, s.w_q4)
-        so3.quat_rotate_into(s.w_q4, s.accel_world_lp[0], s.w_u3)  # R̄ᵀ f̄
+        so3.quat_conjugate_into(s.q, q4)
+        so3.quat_rotate_into(q4, s.accel_world_lp[0], f)  # R̄ᵀ f̄
     else:
-        copy_into(s.w_u3, accel)
+        copy_into(f, accel)
         if aided:  # f − R̄ᵀa (its heading coupling is not modelled)
-            so3.quat_conjugate_into(s.q, s.w_q4)
-            so3.quat_rotate_into(s.w_q4, s.linear_accel, s.w_v3)
+            so3.quat_conjugate_into(s.q, q4)
+            so3.quat_rotate_into(q4, s.linear_accel, s.w_gravity_update_v3)
             for i in range(3):
-                s.w_u3[i] -= s.w_v3[i]
-    f = s.w_u3
+                f[i] -= s.w_gravity_update_v3[i]
     norm = math.sqrt(f[0] ** 2 + f[1] ** 2 + f[2] ** 2)
     if not norm > MIN_ACCEL_FRACTION * c.gravity:
         s.flags |= _ACCEL_INVALID
         return
     for i in range(3):
-        s.w_z[i] = -f[i] / norm
-    sphere.tangent_basis_into(s.w_z, s.w_Bz)
+        s.w_gravity_update_z[i] = -f[i] / norm
+    sphere.tangent_basis_into(s.w_gravity_update_z, s.w_gravity_update_Bz)
     # The measurement model is first order in ε/g: while f̄'s error is a sizeable
     # fraction of g (one sample of a vehicle on the move) its direction says
     # little and not linearly; wait until it has averaged.
@@ -427,7 +453,7 @@ def accel_update(
         s.t_reopened = t
         gate = 0.0
         s.flags |= _TILT_REOPENED
-    copy_into(s.w_q_before, s.q)
+    copy_into(s.w_gravity_update_q_before, s.q)
     if not _gravity_update(s, c, var, gate):
         # The innovation is beyond the χ² gate: more linear acceleration than the
         # model expects (a burst, a tap). Rather than drop the sample, the model
@@ -440,7 +466,8 @@ def accel_update(
         # error larger than ~16° (whose innovation puts ε there at once) could
         # then never be corrected; the rest stays with this sample.
         r0, r1 = s.innovation[0], s.innovation[1]
-        extra = max(0.5 * (r0 * r0 + r1 * r1) - 0.5 * (s.w_S[0, 0] + s.w_S[1, 1]), 0.0)
+        S = s.w_gravity_update_S  # the gated update's
+        extra = max(0.5 * (r0 * r0 + r1 * r1) - 0.5 * (S[0, 0] + S[1, 1]), 0.0)
         if lowpass:
             room = _EPS_ROOM * _linear_limit_variance(c) - _horizontal_eps_variance(s)
             into_eps = min(extra * g2, max(room, 0.0))
@@ -461,8 +488,8 @@ def accel_update(
         # A large tilt correction means f̄ was gathered with the attitude
         # grossly wrong, where the linear model of its error is poor: start
         # it again from the next sample, whose noise is known exactly.
-        so3.quat_divide_right_into(s.q, s.w_q_before, s.w_q4)  # the world-frame move
-        cos_half_tilt = math.sqrt(min(s.w_q4[0] ** 2 + s.w_q4[3] ** 2, 1.0))
+        so3.quat_divide_right_into(s.q, s.w_gravity_update_q_before, q4)  # the world-frame move
+        cos_half_tilt = math.sqrt(min(q4[0] ** 2 + q4[3] ** 2, 1.0))
         if 2.0 * math.acos(cos_half_tilt) > c.lowpass_restart_angle:
             s.filters_primed = 0
             s.flags |= _LOWPASS_RESTARTED

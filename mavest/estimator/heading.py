@@ -45,12 +45,12 @@ _MAX_ALIGNED_HEADING_VAR = 1.0
 
 @inplace_kernel
 def _heading_step(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
-    """w_dx = the error-frame vector of a turn by ψ about the world vertical."""
-    error_frame_from_world(s, c)  # world → error frame in w_m33
+    """w_heading_dx = the error-frame vector of a turn by ψ about the world vertical."""
+    error_frame_from_world(s, c, s.w_heading_M)  # world → error frame
     for i in range(c.n_state):
-        s.w_dx[i] = 0.0
+        s.w_heading_dx[i] = 0.0
     for i in range(3):
-        s.w_dx[i] = s.w_m33[i, 2] * psi
+        s.w_heading_dx[i] = s.w_heading_M[i, 2] * psi
 
 
 @inplace_kernel
@@ -74,7 +74,7 @@ def _align_heading(s: StateRecord, c: CoefficientsRecord, azimuth: float, var: f
     update from no prior would give), at most _MAX_ALIGNED_HEADING_VAR.
     """
     _heading_step(s, c, magnetic.wrap(c.mag_declination - azimuth))
-    apply_correction(s, c, s.w_dx)
+    apply_correction(s, c, s.w_heading_dx)
     var = min(var, _MAX_ALIGNED_HEADING_VAR)
     set_attitude_covariance_world(s, c, 0.0, var, False, True)
 
@@ -90,7 +90,7 @@ def turn_heading(s: StateRecord, c: CoefficientsRecord, psi: float) -> None:
     """
     flush_pending(s, c)
     _heading_step(s, c, psi)
-    apply_correction(s, c, s.w_dx)
+    apply_correction(s, c, s.w_heading_dx)
 
 
 @inplace_kernel
@@ -192,9 +192,9 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
         return
     clear_heading_report(s)
     flush_pending(s, c)
-    m = s.w_mag
+    m = s.w_heading_field
     magnetic.calibrate_into(mag, c.mag_offsets, c.mag_soft_iron, m)
-    azimuth, dip, norm = magnetic.field_geometry(s.q, m, s.w_u3)
+    azimuth, dip, norm = magnetic.field_geometry(s.q, m, s.w_heading_world_field)
     if not (norm > 0.0 and math.isfinite(azimuth)):
         s.flags |= _MAG_INVALID
         return
@@ -232,13 +232,15 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
     # H is taken at the reference field (its learned dip), the prediction, not
     # at this sample's dip: that carries the tilt error and the noise, and a
     # gain made from it grew with the very leak it discounts (mavest.estimator.magnetic).
-    Hf = s.w_v3  # the full H (error frame)
-    Hp = s.w_Hm  # its heading part H_ψ (the same at zero dip)
-    magnetic.heading_jacobians_into(s.q, s.mag_ref_dip, c.mag_declination, c.error, s.w_R, Hf, Hp)
+    Hf = s.w_heading_H  # the full H (error frame)
+    Hp = s.w_heading_H_psi  # its heading part H_ψ (the same at zero dip)
+    magnetic.heading_jacobians_into(
+        s.q, s.mag_ref_dip, c.mag_declination, c.error, s.w_heading_R, Hf, Hp
+    )
     n = c.n_state
     P = s.P
-    C = s.w_Cm
-    K = s.w_Km
+    C = s.w_heading_C
+    K = s.w_heading_K
     var_mag = c.mag_heading_var_density / dt_mag
     # The azimuth noise turns the horizontal field the tilt leaks along, by an
     # angle of variance var_mag: on average the leak is e^(−var_mag/2) H_τ τ
@@ -295,11 +297,11 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
         C[i, 0] = P[i, 0] * Hf[0] + P[i, 1] * Hf[1] + P[i, 2] * Hf[2]
         if i < 3:
             S_full += Hf[i] * C[i, 0]
-    s.w_Sm[0, 0] = S_full
-    gain_update(P[:n, :n], K[:n], C[:n], s.w_Sm, 1)
+    s.w_heading_S[0, 0] = S_full
+    gain_update(P[:n, :n], K[:n], C[:n], s.w_heading_S, 1)
     for i in range(n):
-        s.w_dx[i] = K[i, 0] * nu
-    apply_correction(s, c, s.w_dx)
+        s.w_heading_dx[i] = K[i, 0] * nu
+    apply_correction(s, c, s.w_heading_dx)
     s.mag_used = 1
     s.t_mag_used = t
 

@@ -87,7 +87,7 @@ def state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
     m = n if s.filters_primed and s.health_checks % _FULL_CHECK_EVERY == 0 else N_ERROR
     if m > N_ERROR:
         flush_pending(s, c)
-    return is_positive_definite(s.P[:m, :m], s.w_T[:m, :m])
+    return is_positive_definite(s.P[:m, :m], s.w_health_T[:m, :m])
 
 
 @inplace_kernel
@@ -108,10 +108,11 @@ def _reinitialise(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> N
         align(s, c, accel, keep_heading, False)
         s.t_accel = s.t
     else:
-        s.w_u3[0] = 0.0  # a placeholder attitude with a valid covariance
-        s.w_u3[1] = 0.0
-        s.w_u3[2] = -c.gravity
-        align(s, c, s.w_u3, keep_heading, False)
+        level = s.w_health_level_accel  # a placeholder attitude with a valid covariance:
+        level[0] = 0.0  # what a level accelerometer at rest reads
+        level[1] = 0.0
+        level[2] = -c.gravity
+        align(s, c, level, keep_heading, False)
         s.initialised = 0
         s.flags |= _NOT_INITIALISED
 

@@ -40,6 +40,20 @@ N_CONSIDER = 3 * N_AXES
 N_STATE_MAX = N_ERROR + N_CONSIDER
 N_SIGMA_MAX = 2 * N_STATE_MAX + 1
 
+# The modules of mavest.estimator that own scratch buffers in the state record (its
+# w_<module>_… fields, STATE_DTYPE), each working in its own alone.
+SCRATCH_OWNERS = (
+    "frames",
+    "propagation",
+    "lowpass",
+    "gravity_update",
+    "heading",
+    "rest",
+    "alignment",
+    "health",
+    "online",
+)
+
 # One row of the online estimator's output block (float64), filled by the compiled step:
 # what an Estimate shows. The arrays first, at these offsets, then the step's scalars
 # (the flags and counts are integers, exact in a float64).
@@ -299,47 +313,96 @@ STATE_DTYPE = np.dtype(
         ("heading_innovation", np.float64),  # magnetometer azimuth − declination, rad
         ("heading_nis", np.float64),  # its normalised square (χ², 1 dof)
         ("mag_used", np.int64),
-        # scratch, so that the hot path allocates nothing
-        ("w_R", np.float64, (3, 3)),
-        ("w_R_tilt", np.float64, (3, 3)),
-        ("w_m33", np.float64, (3, 3)),
-        ("w_n33", np.float64, (3, 3)),
-        ("w_v3", np.float64, 3),
-        ("w_u3", np.float64, 3),
-        ("w_sample", np.float64, 12),  # the online step's gyro, accel, magnetometer, linear accel
-        ("w_aid", np.float64, (3, 3)),  # [a]× W: how the attitude error moves an aided sample
-        ("w_mag", np.float64, 3),
-        ("w_Hm", np.float64, N_STATE_MAX),
-        ("w_Km", np.float64, (N_STATE_MAX, 1)),
-        ("w_Cm", np.float64, (N_STATE_MAX, 1)),
-        ("w_Sm", np.float64, (1, 1)),
-        ("w_z", np.float64, 3),
-        ("w_h", np.float64, 3),
-        ("w_Bz", np.float64, (3, 2)),
-        ("w_q4", np.float64, 4),
-        ("w_p4", np.float64, 4),
-        ("w_T", np.float64, (N_STATE_MAX, N_STATE_MAX)),
-        ("w_A", np.float64, (N_STATE_MAX, N_STATE_MAX)),
-        ("w_B", np.float64, (N_STATE_MAX, N_STATE_MAX)),
-        ("w_H", np.float64, (2, N_STATE_MAX)),
-        ("w_K", np.float64, (N_STATE_MAX, 2)),
-        ("w_K3", np.float64, (N_STATE_MAX, 3)),
-        ("w_C", np.float64, (N_STATE_MAX, 2)),
-        ("w_C3", np.float64, (N_STATE_MAX, 3)),
-        ("w_G", np.float64, (2, 3)),
-        ("w_S3", np.float64, (3, 3)),
-        ("w_W", np.float64, (2, 2)),  # the considered states' turn at a reset
-        ("w_S", np.float64, (2, 2)),
-        ("w_r", np.float64, 2),
-        ("w_dx", np.float64, N_STATE_MAX),
-        ("w_d", np.float64, N_STATE_MAX),
-        ("w_m", np.float64, N_STATE_MAX),
-        ("w_prior_q", np.float64, 4),
-        ("w_q_before", np.float64, 4),
-        ("w_prior_b", np.float64, 3),
-        ("w_sigma_chi", np.float64, (N_SIGMA_MAX, N_STATE_MAX)),
-        ("w_sigma_q", np.float64, (N_SIGMA_MAX, 4)),
-        ("w_sigma_r", np.float64, (N_SIGMA_MAX, 2)),
+        # Scratch, so that the hot path allocates nothing. A w_ buffer belongs to the
+        # module named in its prefix, w_<module>_… (mavest.estimator.<module>: see
+        # SCRATCH_OWNERS); nothing else reads or writes it. A kernel that calls another
+        # module's kernel leaves that kernel to work in its own module's scratch; a
+        # value one kernel hands to another is an argument, or a named field above —
+        # never a buffer both write. Then what a callee may overwrite is its own
+        # module's scratch alone (tests/test_layout.py holds the rule).
+        # frames: the reset, and covariances between frames
+        ("w_frames_R", np.float64, (3, 3)),
+        ("w_frames_m33", np.float64, (3, 3)),  # T_θ, or M (world → error frame) to go back
+        ("w_frames_n33", np.float64, (3, 3)),
+        ("w_frames_W", np.float64, (2, 2)),  # the considered states' turn at a reset
+        ("w_frames_q4", np.float64, 4),
+        # the nominal before move_nominal moved it: reset_covariance's reference
+        ("w_frames_q_from", np.float64, 4),
+        # propagation
+        ("w_propagation_phi", np.float64, 3),  # the step's rotation ω̂ Δt
+        ("w_propagation_R", np.float64, (3, 3)),  # R̄ before the step
+        ("w_propagation_R_tilt", np.float64, (3, 3)),
+        ("w_propagation_m33", np.float64, (3, 3)),  # Φ_θb
+        ("w_propagation_n33", np.float64, (3, 3)),  # Exp(−φ)
+        ("w_propagation_q4", np.float64, 4),
+        ("w_propagation_p4", np.float64, 4),
+        ("w_propagation_G", np.float64, (2, 3)),  # G Φ_θb: ε's rows of Φ
+        ("w_propagation_tilt", np.float64, (2, 3)),  # g E W: how δθ moves ε
+        ("w_propagation_tilt_before", np.float64, (2, 3)),  # the same before the step
+        ("w_propagation_GQ", np.float64, (N_ERROR, 2)),
+        ("w_propagation_A", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("w_propagation_B", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("w_propagation_T", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("w_propagation_aid", np.float64, (3, 3)),  # [a]× W of an aided sample
+        ("w_propagation_prior_q", np.float64, 4),
+        ("w_propagation_sigma_chi", np.float64, (N_SIGMA_MAX, N_STATE_MAX)),
+        ("w_propagation_point_q", np.float64, 4),
+        ("w_propagation_dx", np.float64, N_STATE_MAX),
+        # lowpass
+        ("w_lowpass_sample", np.float64, 3),  # R̄ a (less the known acceleration)
+        ("w_lowpass_aid", np.float64, (3, 3)),  # [a]× W of an aided sample
+        # gravity_update
+        ("w_gravity_update_f", np.float64, 3),  # the specific force measured, body frame
+        ("w_gravity_update_v3", np.float64, 3),
+        ("w_gravity_update_z", np.float64, 3),  # the measured direction
+        ("w_gravity_update_Bz", np.float64, (3, 2)),  # its tangent basis
+        ("w_gravity_update_R", np.float64, (3, 3)),
+        ("w_gravity_update_h", np.float64, 3),
+        ("w_gravity_update_rho", np.float64, 3),
+        ("w_gravity_update_m33", np.float64, (3, 3)),
+        ("w_gravity_update_n33", np.float64, (3, 3)),
+        ("w_gravity_update_q4", np.float64, 4),
+        ("w_gravity_update_H", np.float64, (2, N_STATE_MAX)),
+        ("w_gravity_update_C", np.float64, (N_STATE_MAX, 2)),
+        ("w_gravity_update_K", np.float64, (N_STATE_MAX, 2)),
+        ("w_gravity_update_S", np.float64, (2, 2)),
+        ("w_gravity_update_r", np.float64, 2),
+        ("w_gravity_update_W", np.float64, (2, 2)),
+        ("w_gravity_update_A", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("w_gravity_update_d", np.float64, N_STATE_MAX),
+        ("w_gravity_update_m", np.float64, N_STATE_MAX),
+        ("w_gravity_update_dx", np.float64, N_STATE_MAX),
+        ("w_gravity_update_prior_q", np.float64, 4),
+        ("w_gravity_update_prior_b", np.float64, 3),
+        ("w_gravity_update_q_before", np.float64, 4),
+        ("w_gravity_update_sigma_chi", np.float64, (N_SIGMA_MAX, N_STATE_MAX)),
+        ("w_gravity_update_point_q", np.float64, 4),
+        ("w_gravity_update_sigma_r", np.float64, (N_SIGMA_MAX, 2)),
+        # rest
+        ("w_rest_S", np.float64, (3, 3)),
+        ("w_rest_S_inv", np.float64, (3, 3)),
+        ("w_rest_y", np.float64, 3),
+        ("w_rest_K", np.float64, (N_STATE_MAX, 3)),
+        ("w_rest_C", np.float64, (N_STATE_MAX, 3)),
+        ("w_rest_dx", np.float64, N_STATE_MAX),
+        # heading
+        ("w_heading_field", np.float64, 3),  # the calibrated field, body frame
+        ("w_heading_world_field", np.float64, 3),
+        ("w_heading_H", np.float64, 3),
+        ("w_heading_H_psi", np.float64, 3),
+        ("w_heading_R", np.float64, (3, 3)),
+        ("w_heading_M", np.float64, (3, 3)),  # world → error frame
+        ("w_heading_C", np.float64, (N_STATE_MAX, 1)),
+        ("w_heading_K", np.float64, (N_STATE_MAX, 1)),
+        ("w_heading_S", np.float64, (1, 1)),
+        ("w_heading_dx", np.float64, N_STATE_MAX),
+        # health
+        ("w_health_T", np.float64, (N_STATE_MAX, N_STATE_MAX)),
+        ("w_health_level_accel", np.float64, 3),  # what a level accelerometer at rest reads
+        # alignment
+        ("w_alignment_euler", np.float64, 3),
+        # online: the step's gyro, accel, magnetometer, linear accel
+        ("w_online_sample", np.float64, 12),
     ]
 )
 

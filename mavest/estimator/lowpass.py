@@ -145,11 +145,12 @@ def absorb_sample(
 
     var η = σ_a²/Δt, var ξ = σ_v² (1 − γ²).
     """
-    so3.quat_rotate_into(s.q, accel, s.w_v3)  # R̄ a
+    sample = s.w_lowpass_sample
+    so3.quat_rotate_into(s.q, accel, sample)  # R̄ a
     aided = vector_is_finite(s.linear_accel)
     if aided:
         for i in range(3):
-            s.w_v3[i] -= s.linear_accel[i]
+            sample[i] -= s.linear_accel[i]
     lp = s.accel_world_lp
     step_coefficients(s, c, dt)
     step = s.step_coefficients
@@ -161,11 +162,11 @@ def absorb_sample(
     else:
         p00, p01, p10, p11, g0, g1 = step[0], step[1], step[2], step[3], step[4], step[5]
     if primed and not aided:
-        _track_motion(s, c, step[6], dt)
+        _track_motion(s, c, sample, step[6], dt)
     for i in range(3):
         y, rate = lp[0, i], lp[1, i]
-        lp[0, i] = p00 * y + p01 * rate + g0 * s.w_v3[i]
-        lp[1, i] = p10 * y + p11 * rate + g1 * s.w_v3[i]
+        lp[0, i] = p00 * y + p01 * rate + g0 * sample[i]
+        lp[1, i] = p10 * y + p11 * rate + g1 * sample[i]
     gamma = step[6]
     cv = (gamma - 1.0) / dt
     a02, a12 = g0 * cv, g1 * cv
@@ -225,8 +226,8 @@ def _couple_aided_sample(s: StateRecord, c: CoefficientsRecord, g0: float, g1: f
     correlation is what lets the gravity update see heading in turns, as a
     GPS-aided INS does.
     """
-    aided_coupling(s, c)
-    M = s.w_aid
+    M = s.w_lowpass_aid
+    aided_coupling(s, c, M)
     n = c.n_state
     P = s.P
     skew = c.error == ERROR_LEFT  # M = [a]×
@@ -274,8 +275,10 @@ def restart_motion(s: StateRecord, c: CoefficientsRecord) -> None:
 
 
 @inplace_kernel
-def _track_motion(s: StateRecord, c: CoefficientsRecord, gamma: float, dt: float) -> None:
-    """The vehicle's motion level from this sample (``s.w_v3``: R̄ a, before the
+def _track_motion(
+    s: StateRecord, c: CoefficientsRecord, sample: np.ndarray, gamma: float, dt: float
+) -> None:
+    """The vehicle's motion level from this sample (``sample``: R̄ a, before the
     low-pass takes it), as σ_v² of the velocity model.
 
     The sample's horizontal departure from the low-pass f̄ is the linear
@@ -292,7 +295,7 @@ def _track_motion(s: StateRecord, c: CoefficientsRecord, gamma: float, dt: float
         return
     square = 0.0
     for i in range(N_AXES):
-        v = gamma * s.motion_velocity[i] + (s.w_v3[i] - s.accel_world_lp[0, i]) * dt
+        v = gamma * s.motion_velocity[i] + (sample[i] - s.accel_world_lp[0, i]) * dt
         s.motion_velocity[i] = v
         square += v * v
     alpha = dt / (c.velocity_adapt_time + dt)

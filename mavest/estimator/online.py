@@ -131,9 +131,9 @@ def step_into_row(
     ly: float,
     lz: float,
 ) -> None:
-    """One step on a sample given as its components (the scratch ``w_sample`` holds them
-    as the step's vectors); the estimate after it into ``out`` (ROW_WIDTH,)."""
-    sample = s.w_sample
+    """One step on a sample given as its components (the scratch ``w_online_sample`` holds
+    them as the step's vectors); the estimate after it into ``out`` (ROW_WIDTH,)."""
+    sample = s.w_online_sample
     sample[0] = gx
     sample[1] = gy
     sample[2] = gz

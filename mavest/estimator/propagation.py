@@ -45,14 +45,15 @@ from mavest.estimator.linalg import cholesky_into, copy_into, copy_matrix_into
 @inplace_kernel
 def _process_noise_rotation(s: StateRecord, c: CoefficientsRecord, phi: np.ndarray) -> None:
     """The rotation M in Q's cross term: R̄ before the step for the left error, which
-    w_R must hold already; for the right error Exp(−φ), into w_n33, its image under
-    the adjoint, so that left and right filters stay the same filter (with the full
-    reset they give the same estimate: docs/design.md#recursion-and-reset)."""
+    w_propagation_R must hold already; for the right error Exp(−φ), into
+    w_propagation_n33, its image under the adjoint, so that left and right filters stay
+    the same filter (with the full reset they give the same estimate:
+    docs/design.md#recursion-and-reset)."""
     if c.error != ERROR_LEFT:
-        so3.exp_into(phi, s.w_m33)
+        so3.exp_into(phi, s.w_propagation_m33)
         for i in range(3):
             for j in range(3):
-                s.w_n33[i, j] = s.w_m33[j, i]  # Exp(−φ) = Exp(φ)ᵀ
+                s.w_propagation_n33[i, j] = s.w_propagation_m33[j, i]  # Exp(−φ) = Exp(φ)ᵀ
 
 
 @inplace_kernel
@@ -70,7 +71,7 @@ def _world_tilt_rows(s: StateRecord, c: CoefficientsRecord, out: np.ndarray) -> 
         out[0, 1] = -g
         out[1, 0] = g
     else:
-        R = s.w_R_tilt
+        R = s.w_propagation_R_tilt
         so3.matrix_from_quat_into(s.q, R)
         for j in range(3):
             out[0, j] = -g * R[1, j]
@@ -81,8 +82,8 @@ def _world_tilt_rows(s: StateRecord, c: CoefficientsRecord, out: np.ndarray) -> 
 def _add_process_noise(
     s: StateRecord, c: CoefficientsRecord, dt: float, n: int, rate_sq: float
 ) -> None:
-    """P[:n, :n] += Q_d (Van Loan, with the cross term's rotation M, w_R or w_n33:
-    :func:`_process_noise_rotation`). ``rate_sq``: the step's |ω|², which the
+    """P[:n, :n] += Q_d (Van Loan, with the cross term's rotation M, w_propagation_R or
+    w_propagation_n33: :func:`_process_noise_rotation`). ``rate_sq``: the step's |ω|², which the
     gyro's scale and alignment errors are proportional to.
 
     With the considered ε (n > 6), its rows receive G = g E W times the
@@ -94,7 +95,7 @@ def _add_process_noise(
     q_ab = -0.5 * var_b * dt * dt
     q_bb = var_b * dt
     P = s.P
-    M = s.w_R if c.error == ERROR_LEFT else s.w_n33
+    M = s.w_propagation_R if c.error == ERROR_LEFT else s.w_propagation_n33
     for i in range(3):
         P[i, i] += q_aa
         P[3 + i, 3 + i] += q_bb
@@ -104,7 +105,7 @@ def _add_process_noise(
             P[3 + j, i] += v
     if n == N_ERROR:
         return
-    G = s.w_H  # 2×3 scratch (the update rewrites it)
+    G = s.w_propagation_tilt
     _world_tilt_rows(s, c, G)
     # ε receives G Δθ; the low-pass's rate ḟ does not
     for a in range(2):
@@ -142,38 +143,37 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
     if c.accumulate:  # (before P's 6×6 moves: the interval starts from it)
         _open_pending(s)
     n = N_ERROR if c.accumulate else c.n_state
-    phi = s.w_v3
+    phi = s.w_propagation_phi
     for i in range(3):
         phi[i] = (gyro[i] - s.b[i]) * dt
-    so3.matrix_from_quat_into(s.q, s.w_R)
-    _process_noise_rotation(s, c, phi)  # w_n33: also Φ_θθ = Exp(−φ) for the right error
-    F = s.w_m33  # Φ_θb
+    R = s.w_propagation_R
+    so3.matrix_from_quat_into(s.q, R)
+    _process_noise_rotation(s, c, phi)  # w_propagation_n33: also Φ_θθ = Exp(−φ) (right error)
+    F = s.w_propagation_m33  # Φ_θb
     if c.error == ERROR_LEFT:
-        so3.left_jacobian_into(phi, s.w_T[:3, :3])
+        J = s.w_propagation_T  # J_l(φ), in its 3×3 corner
+        so3.left_jacobian_into(phi, J[:3, :3])
         for i in range(3):
             for j in range(3):
-                F[i, j] = -dt * (
-                    s.w_R[i, 0] * s.w_T[0, j]
-                    + s.w_R[i, 1] * s.w_T[1, j]
-                    + s.w_R[i, 2] * s.w_T[2, j]
-                )
+                F[i, j] = -dt * (R[i, 0] * J[0, j] + R[i, 1] * J[1, j] + R[i, 2] * J[2, j])
     else:
         so3.right_jacobian_into(phi, F)
         for i in range(3):
             for j in range(3):
                 F[i, j] *= -dt
-    so3.quat_exp_into(phi, s.w_q4)
-    copy_into(s.w_p4, s.q)
-    so3.quat_multiply_into(s.w_p4, s.w_q4, s.q)
+    so3.quat_exp_into(phi, s.w_propagation_q4)
+    copy_into(s.w_propagation_p4, s.q)
+    so3.quat_multiply_into(s.w_propagation_p4, s.w_propagation_q4, s.q)
     so3.quat_normalize_into(s.q)
-    G = s.w_G  # ε x, y rows of Φ: G Φ_θb, with G = g E W after the step
+    G = s.w_propagation_G  # ε x, y rows of Φ: G Φ_θb, with G = g E W after the step
     if c.n_state > N_ERROR:
-        _world_tilt_rows(s, c, s.w_H)
+        tilt = s.w_propagation_tilt
+        _world_tilt_rows(s, c, tilt)
         for a in range(2):
             for j in range(3):
-                G[a, j] = s.w_H[a, 0] * F[0, j] + s.w_H[a, 1] * F[1, j] + s.w_H[a, 2] * F[2, j]
+                G[a, j] = tilt[a, 0] * F[0, j] + tilt[a, 1] * F[1, j] + tilt[a, 2] * F[2, j]
     right = c.error != ERROR_LEFT
-    E = s.w_n33
+    E = s.w_propagation_n33
     P = s.P
     for j in range(n):  # rows: Φ P
         t0, t1, t2 = P[0, j], P[1, j], P[2, j]
@@ -253,13 +253,14 @@ def _open_pending(s: StateRecord) -> None:
 
 @inplace_kernel
 def _accumulate_prediction(s: StateRecord, c: CoefficientsRecord) -> None:
-    """The prediction :func:`_predict_linear` just made (Φ_θθ in w_n33 for the right
-    error, Φ_θb in w_m33, G Φ_θb in w_G) after the pending transition."""
-    F = s.w_m33
+    """The prediction :func:`_predict_linear` just made (Φ_θθ in w_propagation_n33 for
+    the right error, Φ_θb in w_propagation_m33, G Φ_θb in w_propagation_G) after the
+    pending transition."""
+    F = s.w_propagation_m33
     theta = s.pending_theta
     bias = s.pending_bias
     if c.error != ERROR_LEFT:  # Θθ ← E Θθ, Θb ← E Θb (E = Exp(−φ))
-        E = s.w_n33
+        E = s.w_propagation_n33
         for M in (theta, bias):
             for j in range(3):
                 m0, m1, m2 = M[0, j], M[1, j], M[2, j]
@@ -271,7 +272,7 @@ def _accumulate_prediction(s: StateRecord, c: CoefficientsRecord) -> None:
     if c.n_state > N_ERROR:  # ε x, y ← ε + G Φ_θb δb
         for a in range(2):
             for j in range(3):
-                s.pending_U[a, 3 + j] += s.w_G[a, j]
+                s.pending_U[a, 3 + j] += s.w_propagation_G[a, j]
 
 
 @inplace_kernel
@@ -328,8 +329,8 @@ def accumulate_absorb(
     N[2, 2] += n22
     if not aided:
         return
-    aided_coupling(s, c)  # the current δθ is Θθ δθ₀ + Θb δb₀
-    M = s.w_aid
+    M = s.w_propagation_aid
+    aided_coupling(s, c, M)  # the current δθ is Θθ δθ₀ + Θb δb₀
     s.pending_aided = 1
     skew = c.error == ERROR_LEFT  # M = [a]×
     for j in range(N_ERROR):
@@ -389,15 +390,15 @@ def flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
         for k in range(first, N_ERROR):
             if U[r, k] != 0.0:
                 live |= 1 << r
-    # Q₆'s δθ rows (all that reaches ε) into w_B[:3, :6], via Φ₆'s δθ rows times P₆
-    PhiP = s.w_A
+    # Q₆'s δθ rows (all that reaches ε) into B[:3, :6], via Φ₆'s δθ rows times P₆
+    PhiP = s.w_propagation_A
     for i in range(3):
         for j in range(N_ERROR):
             acc = 0.0
             for k in range(3):
                 acc += theta[i, k] * P6[k, j] + bias[i, k] * P6[3 + k, j]
             PhiP[i, j] = acc
-    Q = s.w_B
+    Q = s.w_propagation_B
     for i in range(3):
         for j in range(3):
             acc = 0.0
@@ -405,15 +406,15 @@ def flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
                 acc += PhiP[i, k] * theta[j, k] + PhiP[i, 3 + k] * bias[j, k]
             Q[i, j] = P[i, j] - acc
             Q[i, 3 + j] = P[i, 3 + j] - PhiP[i, 3 + j]
-    G = s.w_H  # 2×3 scratch (the update rewrites it)
+    G = s.w_propagation_tilt
     _world_tilt_rows(s, c, G)
-    GQ = s.w_C  # G Q₆'s δθ rows (2×6) into w_C[:6, :2] (transposed), G Q₆θθ Gᵀ below
+    GQ = s.w_propagation_GQ  # G Q₆'s δθ rows (2×6), transposed; G Q₆θθ Gᵀ below
     for a in range(2):
         for j in range(N_ERROR):
             GQ[j, a] = _row_times_column(G, a, Q, j)
-    # V = Λ X into w_A[6:, :6]; Z = V + U P₆ into w_B[6:, :6]
-    V = s.w_A
-    Z = s.w_B
+    # V = Λ X into A[6:, :6]; Z = V + U P₆ into B[6:, :6]
+    V = s.w_propagation_A
+    Z = s.w_propagation_B
     for stage in range(3):
         for axis in range(N_AXES):
             r = N_ERROR + N_AXES * stage + axis
@@ -424,8 +425,8 @@ def flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
                     for k in range(first, N_ERROR):
                         acc += U[r - N_ERROR, k] * P6[k, j]
                 Z[r, j] = acc
-    # Λ Y's rows into w_T[6:, 6:], then the new P_uu (lower triangle, mirrored)
-    LY = s.w_T
+    # Λ Y's rows into T[6:, 6:], then the new P_uu (lower triangle, mirrored)
+    LY = s.w_propagation_T
     for stage in range(3):
         for axis in range(N_AXES):
             r = N_ERROR + N_AXES * stage + axis
@@ -474,17 +475,17 @@ def flush_pending(s: StateRecord, c: CoefficientsRecord) -> None:
 
 
 @inplace_kernel
-def sigma_points(s: StateRecord, c: CoefficientsRecord) -> bool:
-    """w_sigma_chi = 0, ±columns of √((n + λ) P) (Cholesky). False if P is not PD."""
+def sigma_points(s: StateRecord, c: CoefficientsRecord, chi: np.ndarray) -> bool:
+    """chi's rows (2n + 1 of them) = 0, ±columns of √((n + λ) P) (Cholesky). False if P
+    is not PD."""
     n = c.n_state
-    A = s.w_B[:n, :n]
-    L = s.w_A[:n, :n]
+    A = s.w_propagation_B[:n, :n]
+    L = s.w_propagation_A[:n, :n]
     for i in range(n):
         for j in range(n):
             A[i, j] = c.sigma_spread * s.P[i, j]
     if not cholesky_into(A, L):
         return False
-    chi = s.w_sigma_chi
     for i in range(n):
         chi[0, i] = 0.0
         for j in range(n):
@@ -497,9 +498,9 @@ def sigma_points(s: StateRecord, c: CoefficientsRecord) -> bool:
 def _weighted_mean_and_covariance_of_chi(
     s: StateRecord, c: CoefficientsRecord, mean: np.ndarray
 ) -> None:
-    """mean = Σ wᵢ χᵢ and P = Σ wᵢᶜ (χᵢ − mean)(χᵢ − mean)ᵀ over w_sigma_chi."""
+    """mean = Σ wᵢ χᵢ and P = Σ wᵢᶜ (χᵢ − mean)(χᵢ − mean)ᵀ over w_propagation_sigma_chi."""
     n = c.n_state
-    chi = s.w_sigma_chi
+    chi = s.w_propagation_sigma_chi
     for i in range(n):
         acc = c.sigma_w0_mean * chi[0, i]
         for k in range(1, 2 * n + 1):
@@ -525,55 +526,53 @@ def _predict_sigma_point(
     propagated nominal, and their mean (non-zero in general) is reset into it.
     A considered ε follows its point's attitude error: ε' = ε + g E (W'χθ' − Wχθ).
     """
-    if not sigma_points(s, c):
+    chi = s.w_propagation_sigma_chi
+    if not sigma_points(s, c, chi):
         return False
     n = c.n_state
-    so3.matrix_from_quat_into(s.q, s.w_R)  # R̄ before the step, for Q_d
-    phi = s.w_v3
+    so3.matrix_from_quat_into(s.q, s.w_propagation_R)  # R̄ before the step, for Q_d
+    phi = s.w_propagation_phi
     for i in range(3):
         phi[i] = (gyro[i] - s.b[i]) * dt
     rate_sq = _rate_squared(phi, dt)
     _process_noise_rotation(s, c, phi)
     # the new reference: the nominal propagated with the nominal bias
-    so3.quat_exp_into(phi, s.w_q4)
-    so3.quat_multiply_into(s.q, s.w_q4, s.w_prior_q)
-    so3.quat_normalize_into(s.w_prior_q)
-    chi = s.w_sigma_chi
-    G_before = s.w_K  # ε rows before the step (W = R̄): reuse 2 columns of scratch
+    so3.quat_exp_into(phi, s.w_propagation_q4)
+    so3.quat_multiply_into(s.q, s.w_propagation_q4, s.w_propagation_prior_q)
+    so3.quat_normalize_into(s.w_propagation_prior_q)
+    G_before = s.w_propagation_tilt_before  # ε rows before the step (W = R̄)
     if n > N_ERROR:
-        _world_tilt_rows(s, c, s.w_H)
-        for a in range(2):
-            for j in range(3):
-                G_before[j, a] = s.w_H[a, j]
+        _world_tilt_rows(s, c, G_before)
+    qk = s.w_propagation_point_q  # the sigma point's attitude, one point at a time
     for k in range(2 * n + 1):
-        qk = s.w_sigma_q[k]
-        retract_into(s.q, chi[k, :3], c.error, c.chart, qk, s.w_q4)
+        retract_into(s.q, chi[k, :3], c.error, c.chart, qk, s.w_propagation_q4)
         for i in range(3):
             phi[i] = (gyro[i] - s.b[i] - chi[k, 3 + i]) * dt
-        so3.quat_exp_into(phi, s.w_q4)
-        copy_into(s.w_p4, qk)
-        so3.quat_multiply_into(s.w_p4, s.w_q4, qk)
+        so3.quat_exp_into(phi, s.w_propagation_q4)
+        copy_into(s.w_propagation_p4, qk)
+        so3.quat_multiply_into(s.w_propagation_p4, s.w_propagation_q4, qk)
         if n > N_ERROR:
             for a in range(2):
                 acc = 0.0
                 for j in range(3):
-                    acc += G_before[j, a] * chi[k, j]
+                    acc += G_before[a, j] * chi[k, j]
                 chi[k, EPS + a] -= acc
-        local_into(qk, s.w_prior_q, c.error, c.chart, chi[k, :3], s.w_q4)
-    copy_into(s.q, s.w_prior_q)
+        local_into(qk, s.w_propagation_prior_q, c.error, c.chart, chi[k, :3], s.w_propagation_q4)
+    copy_into(s.q, s.w_propagation_prior_q)
     if n > N_ERROR:
-        _world_tilt_rows(s, c, s.w_H)  # W' = R̄ after the step
+        G_after = s.w_propagation_tilt
+        _world_tilt_rows(s, c, G_after)  # W' = R̄ after the step
         for k in range(2 * n + 1):
             for a in range(2):
                 acc = 0.0
                 for j in range(3):
-                    acc += s.w_H[a, j] * chi[k, j]
+                    acc += G_after[a, j] * chi[k, j]
                 chi[k, EPS + a] += acc
-    _weighted_mean_and_covariance_of_chi(s, c, s.w_dx)
+    _weighted_mean_and_covariance_of_chi(s, c, s.w_propagation_dx)
     for i in range(EPS, n):  # ε is considered: its mean stays zero
-        s.w_dx[i] = 0.0
+        s.w_propagation_dx[i] = 0.0
     _add_process_noise(s, c, dt, n, rate_sq)
-    apply_correction(s, c, s.w_dx)
+    apply_correction(s, c, s.w_propagation_dx)
     return True
 
 

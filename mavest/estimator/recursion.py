@@ -19,7 +19,8 @@ beside the measurement models (:mod:`~mavest.estimator.gravity`,
 :mod:`~mavest.estimator.magnetic`) and the charts (:mod:`~mavest.estimator.charts`).
 
 Every array the recursion touches lives in the state record ``s``; nothing is
-allocated per sample.
+allocated per sample. Its scratch buffers are each one module's own
+(:data:`~mavest.estimator.layout.SCRATCH_OWNERS`).
 """
 
 from __future__ import annotations

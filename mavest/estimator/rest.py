@@ -71,24 +71,24 @@ def zero_rate_update(s: StateRecord, c: CoefficientsRecord) -> None:
     n = c.n_state
     var = c.gyro_var_density / s.rest_sum_time + c.rest_rate_var
     P = s.P
-    S = s.w_S3
+    S = s.w_rest_S
     for i in range(3):
         for j in range(3):
             S[i, j] = P[3 + i, 3 + j] + (var if i == j else 0.0)
-    det = inverse_3x3_into(S, s.w_m33)  # S⁻¹ in w_m33
+    det = inverse_3x3_into(S, s.w_rest_S_inv)
     if not det > 0.0:
         return
-    y = s.w_v3
+    y = s.w_rest_y
     for i in range(3):
         y[i] = s.rest_gyro_sum[i] / s.rest_samples - s.b[i]
     nis = 0.0
     for i in range(3):
         for j in range(3):
-            nis += y[i] * s.w_m33[i, j] * y[j]
+            nis += y[i] * s.w_rest_S_inv[i, j] * y[j]
     if not nis <= _ZERO_RATE_GATE:
         return
-    K = s.w_K3
-    C = s.w_C3  # P Hᵀ = P[:, b]
+    K = s.w_rest_K
+    C = s.w_rest_C  # P Hᵀ = P[:, b]
     for i in range(n):
         for j in range(3):
             C[i, j] = P[i, 3 + j]
@@ -96,10 +96,10 @@ def zero_rate_update(s: StateRecord, c: CoefficientsRecord) -> None:
             acc = 0.0
             if i < EPS:  # the considered states get no gain
                 for k in range(3):
-                    acc += C[i, k] * s.w_m33[k, j]
+                    acc += C[i, k] * s.w_rest_S_inv[k, j]
             K[i, j] = acc
     for i in range(n):
-        s.w_dx[i] = K[i, 0] * y[0] + K[i, 1] * y[1] + K[i, 2] * y[2]
+        s.w_rest_dx[i] = K[i, 0] * y[0] + K[i, 1] * y[1] + K[i, 2] * y[2]
     gain_update(P[:n, :n], K[:n], C[:n], S, 3)
-    apply_correction(s, c, s.w_dx)
+    apply_correction(s, c, s.w_rest_dx)
     s.at_rest = 1
