@@ -247,6 +247,19 @@ class Estimator:
         """Forget everything; the next usable sample initialises again."""
         self._bind(new_state(self._coefficients))
 
+    def snapshot(self) -> np.ndarray:
+        """A copy of the filter's state: everything an update changes (not the
+        configuration, nor the declination, which updates leave alone). Opaque: only
+        for :meth:`restore`, on this estimator or one made with the same configuration."""
+        return self._state.copy()
+
+    def restore(self, snapshot: np.ndarray) -> None:
+        """Put back a state taken by :meth:`snapshot`: the updates since are undone,
+        as if they had not been made (an update fetched before follows, as it follows
+        :meth:`reset`)."""
+        # in place: the online step and the heading turn hold this record
+        self._state[...] = snapshot
+
     def initialise(
         self,
         t: float,

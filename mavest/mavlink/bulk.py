@@ -34,10 +34,10 @@ from mavest import so3
 from mavest._jit import inplace_exact_kernel
 from mavest.mavlink import wire
 from mavest.mavlink.messages import (
-    _INSTANCE_BY_NAME,
     HIGHRES_INERTIAL_BITS,
     HIGHRES_MAG_BITS,
     IMU_FORMATS,
+    SCALED_IMU_INSTANCE,
     mavlink2,
 )
 
@@ -302,7 +302,7 @@ def imu_fields(name: str, payloads: np.ndarray) -> ImuFields:
         if name == "RAW_IMU":
             instance = payloads["id"].astype(np.int64)
         else:
-            instance = np.full(n, _INSTANCE_BY_NAME[name], dtype=np.int64)
+            instance = np.full(n, SCALED_IMU_INSTANCE[name], dtype=np.int64)
     return ImuFields(
         payloads[fmt.time_field].astype(np.int64),
         axes("gyro", fmt.gyro_scale),

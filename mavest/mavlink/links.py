@@ -138,15 +138,23 @@ class Link:
 
 
 class _DatagramProtocol(asyncio.DatagramProtocol):
-    def __init__(self, link: UdpLink) -> None:
-        self.link = link
+    """asyncio's side of a UDP link: hands each datagram and error to the link's
+    handlers (given, so that the link's own methods stay its own)."""
+
+    def __init__(
+        self,
+        on_datagram: Callable[[bytes, Any], None],
+        on_error: Callable[[Exception], None],
+    ) -> None:
+        self.on_datagram = on_datagram
+        self.on_error = on_error
 
     def datagram_received(self, data: bytes, addr: Any) -> None:
-        self.link._on_datagram(data, addr)
+        self.on_datagram(data, addr)
 
     def error_received(self, exc: Exception) -> None:
         # ICMP "port unreachable" after sending to a peer that is not listening (yet)
-        self.link._on_error(exc)
+        self.on_error(exc)
 
 
 class UdpLink(Link):
@@ -168,19 +176,19 @@ class UdpLink(Link):
         await super().start(receiver)
         loop = asyncio.get_running_loop()
         address = (self.endpoint.host, self.endpoint.port)
+
+        def protocol() -> _DatagramProtocol:
+            return _DatagramProtocol(self._on_datagram, self._on_error)
+
         try:
             if self.endpoint.kind == "udpin":
-                transport, _ = await loop.create_datagram_endpoint(
-                    lambda: _DatagramProtocol(self), local_addr=address
-                )
+                transport, _ = await loop.create_datagram_endpoint(protocol, local_addr=address)
             elif self.endpoint.kind == "udpbcast":
                 transport, _ = await loop.create_datagram_endpoint(
-                    lambda: _DatagramProtocol(self), local_addr=("0.0.0.0", 0), allow_broadcast=True
+                    protocol, local_addr=("0.0.0.0", 0), allow_broadcast=True
                 )
             else:
-                transport, _ = await loop.create_datagram_endpoint(
-                    lambda: _DatagramProtocol(self), remote_addr=address
-                )
+                transport, _ = await loop.create_datagram_endpoint(protocol, remote_addr=address)
         except OSError as error:
             if self.endpoint.kind == "udpin":
                 raise _cannot_listen(self.endpoint, error) from None

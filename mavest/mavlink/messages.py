@@ -47,8 +47,9 @@ IMU_MESSAGES: tuple[str, ...] = (
     "SCALED_IMU3",
 )
 
-# SCALED_IMU2/3 are the second and third IMU: their instance is in the name.
-_INSTANCE_BY_NAME = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
+# The IMU instance of each SCALED_IMU* message: SCALED_IMU2/3 are the second and third
+# IMU, their instance in the name.
+SCALED_IMU_INSTANCE = {"SCALED_IMU": 0, "SCALED_IMU2": 1, "SCALED_IMU3": 2}
 
 # HIGHRES_IMU.fields_updated: gyro and accelerometer must all be fresh to be a sample.
 HIGHRES_INERTIAL_BITS = (
@@ -174,7 +175,7 @@ def decode_imu(message: Any) -> ImuSample | None:
     elif name == "RAW_IMU":
         instance = message.id  # a MAVLink 2 extension: 0 when sent as MAVLink 1
     else:
-        instance = _INSTANCE_BY_NAME[name]
+        instance = SCALED_IMU_INSTANCE[name]
     a, g, m = fmt.accel_scale, fmt.gyro_scale, fmt.mag_scale
     gx, gy, gz = message.xgyro, message.ygyro, message.zgyro
     ax, ay, az = message.xacc, message.yacc, message.zacc
@@ -246,20 +247,27 @@ class Encoder:
             return self._pack_payload(message.id, message.crc_extra, payload, True)
         if self.signed:
             advance_clock(mav.signing)
-        packet = message.pack(mav)
-        mav.seq = (mav.seq + 1) % 256
+        packet = message.pack(mav)  # (with mav.seq, the next sequence number)
+        self.take_sequence()
         return packet
+
+    def take_sequence(self, count: int = 1) -> int:
+        """The sequence number of the next packet, for ``count`` packets packed elsewhere
+        (they take it and the ones after it, modulo 256: a replay packs its answers in
+        bulk); the packets of this encoder go on after them."""
+        mav = self._mav
+        first = mav.seq
+        mav.seq = (first + count) % 256
+        return first
 
     def _pack_payload(
         self, message_id: int, crc_extra: int, payload: bytes, mavlink1: bool
     ) -> bytes:
         """The unsigned packet of a payload (wire order), with the next sequence number."""
-        mav = self._mav
-        packet = wire.pack(
-            message_id, crc_extra, payload, mav.seq, self.system, self.component, mavlink1
+        sequence = self.take_sequence()
+        return wire.pack(
+            message_id, crc_extra, payload, sequence, self.system, self.component, mavlink1
         )
-        mav.seq = (mav.seq + 1) % 256
-        return packet
 
     def _pack_unsigned(
         self, message_class: type[Any], *wire_values: float, mavlink1: bool = False

@@ -60,9 +60,8 @@ from mavest.mavlink.messages import (
 from mavest.mavlink.tlog import TlogWriter
 from mavest.service.aiding import AIRSPEED_MAX_AGE, gps_acceleration_at
 from mavest.service.pipeline import (
-    _FIXED_WING_TYPES,
-    _HEADING_EVENTS,
-    _HEALTH_EVENTS,
+    HEADING_EVENTS,
+    HEALTH_EVENTS,
     MAG_NOT_TAKEN,
     MAG_WAIT,
     MAX_ACCEL,
@@ -71,12 +70,13 @@ from mavest.service.pipeline import (
     Pipeline,
     Stream,
     Vehicle,
-    _reject,
-    _report_heading,
-    _report_health,
-    _report_realigned,
     autopilot_restarted,
     autopilot_time,
+    is_fixed_wing,
+    reject_sample,
+    report_heading,
+    report_health,
+    report_realigned,
 )
 
 # What a record is to the pipeline (by message id).
@@ -378,7 +378,7 @@ class BulkFeed:
                 _IMU_IDS[(value >> 8) & 0xFFFFFF],
                 value & 0xFF,
             )
-            if not pipeline._follows(key.system):
+            if not pipeline.follows(key.system):
                 continue  # counted and said by the pipeline: alone
             mine = code == value
             # a HIGHRES_IMU without fresh gyro and accelerometer is passed by first of all
@@ -388,7 +388,7 @@ class BulkFeed:
             if known is not None and (stream is None or known is stream):
                 stream = known
                 status[mine] = _ESTIMATED
-            elif known is None and key in pipeline._not_followed:
+            elif known is None and pipeline.stream_declined(key):
                 status[mine] = _PASSED_BY
         return status, stream
 
@@ -409,7 +409,7 @@ class BulkFeed:
         if stream is not None and stream.primary:
             for system in _distinct(records.system[truth_rows]):
                 # the vehicle a SIMSTATE is for, as Pipeline.on_message finds it
-                vehicle = pipeline.vehicles.get((system, 1)) or pipeline._any_vehicle(system)
+                vehicle = pipeline.truth_vehicle(system)
                 if vehicle is not None and vehicle.primary == stream.key:
                     foreign[records.system[truth_rows] == system] = False
         if foreign.any():
@@ -425,14 +425,14 @@ class BulkFeed:
             message = self._decode(records, row)
             header = message._header
             system, component = header.srcSystem, header.srcComponent
-            if pipeline._is_ours(system, component) or not pipeline._is_vehicles_heartbeat(
+            if pipeline.is_ours(system, component) or not pipeline.is_vehicles_heartbeat(
                 system, message
             ):
                 continue  # Pipeline.on_message leaves it there
             vehicle = pipeline.vehicles.get((system, component))
             if (
                 vehicle is None
-                or vehicle.fixed_wing != (message.type in _FIXED_WING_TYPES)
+                or vehicle.fixed_wing != is_fixed_wing(message.type)
                 or vehicle.mavlink1 != is_mavlink1(message)  # what our HEARTBEAT speaks
             ):
                 return row
@@ -478,7 +478,7 @@ class BulkFeed:
         alone if it is not plain. Returns where the next run starts."""
         began = time.perf_counter()
         gyro, accel = decoded.gyro[rows], decoded.accel[rows]
-        # as Pipeline._estimate's checks (written to fail on NaN too)
+        # as the pipeline checks each sample (written to fail on NaN too)
         valid = (
             _every_axis(np.abs(gyro) <= MAX_GYRO)
             & _every_axis(np.abs(accel) <= MAX_ACCEL)
@@ -521,7 +521,7 @@ class BulkFeed:
         while True:
             series, count, cut = part.result()
             first, done = done, done + count
-            if stream.inputs is not None:  # kept to be smoothed (as Pipeline._step keeps them)
+            if stream.inputs is not None:  # kept to be smoothed (as the pipeline keeps them)
                 stream.inputs.add_many(*(x[first:done] for x in inputs), series.flags[:count])
             ended = cut or done == plain_count
             if not ended:
@@ -579,7 +579,7 @@ class BulkFeed:
         are (whether GPS aiding applies): (the estimates, how many, whether the batch
         ends there)."""
         estimator = stream.estimator
-        before = estimator._state.copy()
+        before = estimator.snapshot()
         series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
         # (after the batch's last step the next inputs are decided anew anyway)
         events = np.flatnonzero(series.flags[: -1 if last else None] & _REGIME_EVENTS)
@@ -588,7 +588,7 @@ class BulkFeed:
         count = int(events[0]) + 1  # the steps after it took inputs decided too early
         if count == t.shape[0]:
             return series, count, True
-        estimator._state[...] = before
+        estimator.restore(before)
         series = estimator.update_batch(
             t[:count], gyro[:count], accel[:count], mag[:count], linear_accel[:count]
         )
@@ -625,8 +625,8 @@ class BulkFeed:
         ]
         state = copy.copy(vehicle)
         state.gps = copy.copy(vehicle.gps)
-        gps_aiding = pipeline._gps_aiding(stream)
-        airspeed_aiding = pipeline._airspeed_aiding(vehicle)
+        gps_aiding = pipeline.gps_aiding(stream)
+        airspeed_aiding = pipeline.airspeed_aiding(vehicle)
         linear_accel = np.full((n, 3), math.nan)
         needs_airspeed = np.zeros(n, dtype=bool)
         decided = 0  # samples
@@ -668,7 +668,7 @@ class BulkFeed:
         if stop <= start:
             return
         pipeline = self.pipeline
-        record_us_before = pipeline._record_us
+        record_us_before = pipeline.record_us
         kind = decoded.kind[start:stop]
         # (every HEARTBEAT here is one that changes nothing the stretch depends on)
         inline = start + np.flatnonzero((kind == INLINE) | (kind == BEAT))
@@ -729,7 +729,7 @@ class BulkFeed:
             elif self.tlog is not None:
                 self._write_records(records, piece_start, piece_end)
             last_decoded = int(np.searchsorted(decoded_rows, piece_end)) - 1
-            pipeline._record_us = (
+            pipeline.record_us = (
                 int(records.stamp[decoded_rows[last_decoded]])
                 if last_decoded >= 0
                 else record_us_before
@@ -924,7 +924,7 @@ class BulkFeed:
             first, first_truth = last, last_truth
 
     def _book(self, stream: Stream, vehicle: Vehicle, steps: _Steps) -> np.ndarray:
-        """Count and report what the steps did, as Pipeline._step does sample by sample;
+        """Count and report what the steps did, as the pipeline does sample by sample;
         returns the indices of those estimated (not skipped)."""
         stats = stream.stats
         flags = steps.flags
@@ -933,8 +933,8 @@ class BulkFeed:
         skipped = (flags & StepFlags.SKIPPED) != 0
         kept = np.flatnonzero(~skipped)
         # the rare samples that are news, in order, with the counters as they stood
-        notable = skipped | ((flags & (StepFlags.GAP_REALIGNED | _HEALTH_EVENTS)) != 0)
-        notable |= (flags & _HEADING_EVENTS) != 0
+        notable = skipped | ((flags & (StepFlags.GAP_REALIGNED | HEALTH_EVENTS)) != 0)
+        notable |= (flags & HEADING_EVENTS) != 0
         if not stream.heading_source_reported and kept.shape[0]:
             first_t = stats.first_t if stats.first_t is not None else float(t[kept[0]])
             due = kept[t[kept] - first_t >= MAG_WAIT]
@@ -944,20 +944,22 @@ class BulkFeed:
         for index in np.flatnonzero(notable).tolist():
             f = int(flags[index])
             if f & StepFlags.SKIPPED:
-                _reject(stream, "skipped by the estimator: " + ", ".join(StepFlags.describe(f)))
+                reject_sample(
+                    stream, "skipped by the estimator: " + ", ".join(StepFlags.describe(f))
+                )
                 continue
             earlier = kept[kept < index]
             stats.last_t = float(t[earlier[-1]]) if earlier.shape[0] else last_t
             ti = float(t[index])
             if f & StepFlags.GAP_REALIGNED:
-                _report_realigned(stream, ti)
-            if f & _HEALTH_EVENTS:
-                _report_health(stream, f, ti)
+                report_realigned(stream, ti)
+            if f & HEALTH_EVENTS:
+                report_health(stream, f, ti)
             if stats.first_t is None:
                 stats.first_t = ti
             stats.last_t = ti
-            if f & _HEADING_EVENTS or not stream.heading_source_reported:
-                _report_heading(stream, f)
+            if f & HEADING_EVENTS or not stream.heading_source_reported:
+                report_heading(stream, f)
         stats.last_t = last_t
         if not kept.shape[0]:
             return kept
@@ -1028,15 +1030,15 @@ class BulkFeed:
         self, records: bulk.RecordIndex, stream: Stream, steps: _Steps, answered: np.ndarray
     ) -> tuple[bulk.Packets, bulk.Packets | None]:
         """ATTITUDE (and ATTITUDE_QUATERNION) for the answered samples, as
-        Pipeline._answer packs them, with the encoder's sequence numbers, each in the
+        the pipeline packs them, with the encoder's sequence numbers, each in the
         MAVLink version its sample came in."""
         pipeline = self.pipeline
         q = steps.q[answered]
         rates = steps.gyro[answered] - steps.bias[answered]
         stamps = time_boot_ms_many(steps.t[answered])
-        encoder = pipeline._encoder(stream.key.system)
-        mav = encoder._mav
+        encoder = pipeline.encoder(stream.key.system)
         with_quaternion = pipeline.config.output.attitude_quaternion
+        sent = answered.shape[0] * (2 if with_quaternion else 1)
         packets = bulk.attitude_packets(
             stamps,
             steps.euler[answered],
@@ -1044,11 +1046,9 @@ class BulkFeed:
             q if with_quaternion else None,
             encoder.system,
             encoder.component,
-            mav.seq,
+            encoder.take_sequence(sent),
             self.data[records.start[steps.rows[answered]] + 8] == mavlink2.PROTOCOL_MARKER_V1,
         )
-        sent = answered.shape[0] * (2 if with_quaternion else 1)
-        mav.seq = (mav.seq + sent) % 256
         pipeline.sent += sent
         stream.stats.answered += answered.shape[0]
         return packets

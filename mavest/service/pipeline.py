@@ -207,7 +207,10 @@ class Pipeline:
         self.messages_in = 0
         self.bad_packets = 0
         self.sent = 0
-        self._record_us = 0  # timestamp for records written now
+        # The record time (µs) of what is written now: packets of ours in the output
+        # tlog, estimates and references to the sinks. The last message's
+        # (on_message); a replay's bulk feed sets it as the records it takes would.
+        self.record_us = 0
         self._not_followed: set[StreamKey] = set()
         self.ignored_imu: dict[int, int] = {}  # IMU messages from systems not followed
         self._declinations: dict[int, float] = {}  # rad, each system's COMPASS_DEC
@@ -285,10 +288,10 @@ class Pipeline:
     def on_message(self, message: Any, timestamp_us: int) -> None:
         """One decoded message; ``timestamp_us`` is its record time (for files written)."""
         self.messages_in += 1
-        self._record_us = timestamp_us
+        self.record_us = timestamp_us
         header = message._header
         system, component = header.srcSystem, header.srcComponent
-        if self._is_ours(system, component):
+        if self.is_ours(system, component):
             return
         name = message._type
         if not self.streams:
@@ -299,7 +302,7 @@ class Pipeline:
             t = autopilot_time(message.time_boot_ms)
             self._on_reference(system, component, message, "autopilot", t)
         elif name == "SIMSTATE":
-            vehicle = self.vehicles.get((system, 1)) or self._any_vehicle(system)
+            vehicle = self.truth_vehicle(system)
             if vehicle is not None and vehicle.last_t is not None:
                 self._on_reference(
                     vehicle.system, vehicle.component, message, "truth", vehicle.last_t
@@ -318,10 +321,10 @@ class Pipeline:
                 else:
                     vehicle.gps.on_velocity(message, vehicle.last_t)
         elif name == "HEARTBEAT":
-            if self._is_vehicles_heartbeat(system, message):
+            if self.is_vehicles_heartbeat(system, message):
                 vehicle = self._vehicle(system, component)
                 vehicle.autopilot = message.autopilot
-                vehicle.fixed_wing = message.type in _FIXED_WING_TYPES
+                vehicle.fixed_wing = is_fixed_wing(message.type)
                 vehicle.mavlink1 = is_mavlink1(message)
         elif name in _REQUESTS:
             self._on_request(message, system, component)
@@ -334,7 +337,7 @@ class Pipeline:
                 result.name if result is not None else message.result,
             )
 
-    def _is_vehicles_heartbeat(self, system: int, message: Any) -> bool:
+    def is_vehicles_heartbeat(self, system: int, message: Any) -> bool:
         """Whether a HEARTBEAT not of ours speaks for a vehicle (its autopilot a real
         one, its system not ignored): it tells the vehicle's type."""
         return (
@@ -342,7 +345,10 @@ class Pipeline:
             and message.autopilot != mavlink2.MAV_AUTOPILOT_INVALID
         )
 
-    def _is_ours(self, system: int, component: int) -> bool:
+    def is_ours(self, system: int, component: int) -> bool:
+        """Whether (system, component) is mavest itself: ``output.component_id`` on
+        ``output.system_id``, or on any system when that is 0. What it hears of itself,
+        it neither takes nor answers."""
         output = self.config.output
         if component != output.component_id:
             return False
@@ -356,13 +362,20 @@ class Pipeline:
             vehicle.declination = self._declinations.get(system)
         return vehicle
 
+    def truth_vehicle(self, system: int) -> Vehicle | None:
+        """The vehicle a SIMSTATE (the simulator's truth) from ``system`` is for: its
+        autopilot (component 1), else one of its vehicles that has a stream."""
+        return self.vehicles.get((system, 1)) or self._any_vehicle(system)
+
     def _any_vehicle(self, system: int) -> Vehicle | None:
         for vehicle in self.vehicles.values():
             if vehicle.system == system and vehicle.primary is not None:
                 return vehicle
         return None
 
-    def _follows(self, system: int) -> bool:
+    def follows(self, system: int) -> bool:
+        """Whether the IMU messages of ``system`` are estimated from (``input.system``,
+        or any system not in ``input.ignore_systems``)."""
         wanted = self.config.input.system
         if wanted:
             return system == wanted
@@ -370,7 +383,7 @@ class Pipeline:
 
     def _on_imu(self, message: Any, system: int, component: int) -> None:
         start = time.perf_counter()
-        if not self._follows(system):
+        if not self.follows(system):
             self._ignore_imu(system)
             return
         sample = decode_imu(message)
@@ -378,7 +391,7 @@ class Pipeline:
             return
         stream = self.streams.get(sample.stream)
         if stream is None:
-            if sample.stream in self._not_followed:
+            if self.stream_declined(sample.stream):
                 return
             stream = self._new_stream(sample.stream)
             if stream is None:
@@ -388,6 +401,12 @@ class Pipeline:
             if vehicle.mavlink1 is None:  # no HEARTBEAT of its own yet
                 vehicle.mavlink1 = sample.mavlink1
         self._estimate(stream, sample, start)
+
+    def stream_declined(self, key: StreamKey) -> bool:
+        """Whether a stream was seen and is not followed (the configuration does not
+        select it, or a better stream of its vehicle replaced it): its samples are
+        passed by."""
+        return key in self._not_followed
 
     def _ignore_imu(self, system: int) -> None:
         """Count an IMU message from a system not followed; say so once per system."""
@@ -457,7 +476,7 @@ class Pipeline:
             or sample.saturated
             or accel == (0.0, 0.0, 0.0)
         ):
-            _reject(stream, _rejection_reason(sample))
+            reject_sample(stream, _rejection_reason(sample))
             if sample.gyro_saturated:  # the rotation it missed is unknown
                 stream.estimator.gyro_clipped()
             return
@@ -521,7 +540,9 @@ class Pipeline:
         estimate = stream.estimator.update(t, gyro, accel, mag, linear_accel)
         flags = estimate.flags
         if flags & StepFlags.SKIPPED:
-            _reject(stream, "skipped by the estimator: " + ", ".join(StepFlags.describe(flags)))
+            reject_sample(
+                stream, "skipped by the estimator: " + ", ".join(StepFlags.describe(flags))
+            )
             return
         if stream.inputs is not None:
             stream.inputs.add(t, gyro, accel, mag, linear_accel)
@@ -530,9 +551,9 @@ class Pipeline:
         elif airspeed_aided:
             stats.airspeed_aided += 1
         if flags & StepFlags.GAP_REALIGNED:
-            _report_realigned(stream, t)
-        if flags & _HEALTH_EVENTS:
-            _report_health(stream, flags, t)
+            report_realigned(stream, t)
+        if flags & HEALTH_EVENTS:
+            report_health(stream, flags, t)
         stats.estimated += 1
         if stats.first_t is None:
             stats.first_t = t
@@ -542,8 +563,8 @@ class Pipeline:
             if not flags & MAG_NOT_TAKEN:
                 stats.mag_taken += 1
                 stats.mag_used += estimate.mag_used
-        if flags & _HEADING_EVENTS or not stream.heading_source_reported:
-            _report_heading(stream, flags)
+        if flags & HEADING_EVENTS or not stream.heading_source_reported:
+            report_heading(stream, flags)
         vehicle.last_t = t
         euler = estimate.euler
         euler_tuple = (float(euler[0]), float(euler[1]), float(euler[2]))
@@ -552,7 +573,7 @@ class Pipeline:
         if self.sinks:
             processing = time.perf_counter() - start
             for sink in self.sinks:
-                sink.on_estimate(stream, sample, estimate, euler_tuple, self._record_us, processing)
+                sink.on_estimate(stream, sample, estimate, euler_tuple, self.record_us, processing)
         if stream.primary and t >= stream.next_output:
             self._answer(stream, t, estimate, euler_tuple, gyro, sample.mavlink1)
 
@@ -591,20 +612,20 @@ class Pipeline:
         Only with heading from the magnetometer: the acceleration is known in the
         world frame, and a free (6-D) heading cannot turn it into the body.
         """
-        return vehicle.gps.at(t) if self._gps_aiding(stream) else None
+        return vehicle.gps.at(t) if self.gps_aiding(stream) else None
 
-    def _gps_aiding(self, stream: Stream) -> bool:
+    def gps_aiding(self, stream: Stream) -> bool:
         """Whether this stream's samples take the GPS acceleration when it is fresh."""
         mode = self.config.input.acceleration_aiding
         return mode in ("auto", "gps") and stream.estimator.heading_referenced
 
-    def _airspeed_aiding(self, vehicle: Vehicle) -> bool:
+    def airspeed_aiding(self, vehicle: Vehicle) -> bool:
         """Whether this vehicle's samples take the airspeed correction when it is fresh."""
         mode = self.config.input.acceleration_aiding
         return not (mode in ("off", "gps") or (mode == "auto" and not vehicle.fixed_wing))
 
     def _uses_airspeed(self, vehicle: Vehicle, t: float) -> bool:
-        return self._airspeed_aiding(vehicle) and 0.0 <= t - vehicle.airspeed_t <= AIRSPEED_MAX_AGE
+        return self.airspeed_aiding(vehicle) and 0.0 <= t - vehicle.airspeed_t <= AIRSPEED_MAX_AGE
 
     def _answer(
         self,
@@ -624,7 +645,7 @@ class Pipeline:
             stream.next_output = max(stream.next_output + period, t + 0.5 * period)
         bias = estimate.bias
         rates = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
-        encoder = self._encoder(stream.key.system)
+        encoder = self.encoder(stream.key.system)
         stamp = time_boot_ms(t)
         attitude = encoder.attitude(stamp, euler, rates, mavlink1)
         if output.attitude_quaternion:
@@ -636,7 +657,7 @@ class Pipeline:
     def autopilot_stream(self, system: int, component: int) -> Stream | None:
         """The stream an autopilot's ATTITUDE from (system, component) is compared with
         (None: none, or the message is ours)."""
-        if self._is_ours(system, component):
+        if self.is_ours(system, component):
             return None
         return self._reference_stream(system, component)
 
@@ -662,11 +683,14 @@ class Pipeline:
         else:
             stream.vs_autopilot.add_reference(t, euler)
         for sink in self.sinks:
-            sink.on_reference(stream, source, t, euler, self._record_us)
+            sink.on_reference(stream, source, t, euler, self.record_us)
 
     # ---------------------------------------------------------------- output
 
-    def _encoder(self, vehicle_system: int) -> Encoder:
+    def encoder(self, vehicle_system: int) -> Encoder:
+        """The encoder of what mavest sends for a vehicle of this system: from
+        ``output.system_id``, or the vehicle's system when that is 0; one per system,
+        so that each system's packets keep their own sequence numbers."""
         system = self.config.output.system_id or vehicle_system
         encoder = self._encoders.get(system)
         if encoder is None:
@@ -691,7 +715,7 @@ class Pipeline:
             link.send(data)
         if self.out_tlog is not None:
             for packet in packets:
-                self.out_tlog.write(self._record_us, packet)
+                self.out_tlog.write(self.record_us, packet)
 
     def _speaking(self) -> dict[int, bool]:
         """The systems mavest speaks as (none until a vehicle's IMU is followed), each
@@ -707,7 +731,7 @@ class Pipeline:
     def heartbeat(self) -> None:
         """One HEARTBEAT per system mavest speaks as (none until a vehicle is heard)."""
         for system, mavlink1 in sorted(self._speaking().items()):
-            self.emit(self._encoder(system).heartbeat(mavlink1))
+            self.emit(self.encoder(system).heartbeat(mavlink1))
 
     def _on_request(self, message: Any, system: int, component: int) -> None:
         """Answer a request addressed to mavest's own system and component, as a MAVLink
@@ -724,7 +748,7 @@ class Pipeline:
             return
         name = message._type
         mavlink1 = is_mavlink1(message)
-        encoder = self._encoder(target)
+        encoder = self.encoder(target)
         if name in ("COMMAND_LONG", "COMMAND_INT"):
             answer = "MAV_RESULT_UNSUPPORTED"
             packet = encoder.command_ack(
@@ -819,7 +843,7 @@ class Pipeline:
             vehicle.interval_asked = message
             log.info("asking %s for %s at %g Hz", _who(vehicle), message, rate)
             self.emit(
-                self._encoder(vehicle.system).set_message_interval(
+                self.encoder(vehicle.system).set_message_interval(
                     vehicle.system, vehicle.component, message, rate, vehicle.mavlink1 is True
                 ),
                 to_vehicle=True,
@@ -862,6 +886,12 @@ def _enum_name(enum: str, value: int) -> str:
     return entry.name if entry is not None else str(value)
 
 
+def is_fixed_wing(mav_type: int) -> bool:
+    """Whether a HEARTBEAT's ``type`` (MAV_TYPE) flies on wings (fixed wing, the
+    VTOLs, gliders): such a vehicle's samples may take the airspeed correction."""
+    return mav_type in _FIXED_WING_TYPES
+
+
 _FIXED_WING_TYPES = frozenset(
     getattr(mavlink2, name)
     for name in (
@@ -878,7 +908,8 @@ _FIXED_WING_TYPES = frozenset(
 )
 
 
-_HEADING_EVENTS = (
+# the step flags on which a stream's heading source is said again (report_heading)
+HEADING_EVENTS = (
     StepFlags.HEADING_ALIGNED | StepFlags.HEADING_REOPENED | StepFlags.MAG_REFERENCE_CHANGED
 )
 
@@ -894,7 +925,8 @@ def _usable_mag(mag: tuple[float, float, float] | None) -> tuple[float, float, f
 # looked at them)
 MAG_NOT_TAKEN = StepFlags.MAG_BETWEEN_UPDATES | StepFlags.MAG_SET_ASIDE
 
-_HEALTH_EVENTS = (
+# the step flags of the estimator's health checks: each is news (report_health)
+HEALTH_EVENTS = (
     StepFlags.TILT_REOPENED
     | StepFlags.DIVERGED
     | StepFlags.UNHEALTHY_RESET
@@ -902,7 +934,7 @@ _HEALTH_EVENTS = (
 )
 
 
-def _report_health(stream: Stream, flags: int, t: float) -> None:
+def report_health(stream: Stream, flags: int, t: float) -> None:
     """Count and say what the estimator's health checks did (rare: each is news)."""
     stats = stream.stats
     if flags & StepFlags.TILT_REOPENED:
@@ -934,7 +966,7 @@ def _report_health(stream: Stream, flags: int, t: float) -> None:
         )
 
 
-def _report_realigned(stream: Stream, t: float) -> None:
+def report_realigned(stream: Stream, t: float) -> None:
     """Count and say that a gap before the sample at t made the filter re-align."""
     stats = stream.stats
     stats.realigned += 1
@@ -942,7 +974,7 @@ def _report_realigned(stream: Stream, t: float) -> None:
     log.warning("%s: no samples for %.2f s: attitude re-aligned", stream.key, gap)
 
 
-def _report_heading(stream: Stream, flags: int) -> None:
+def report_heading(stream: Stream, flags: int) -> None:
     """Say once where heading comes from, and when the magnetometer's role changes."""
     stats = stream.stats
     if flags & StepFlags.HEADING_ALIGNED:
@@ -982,7 +1014,7 @@ def _rejection_reason(sample: ImuSample) -> str:
     return "beyond any sensor's range"
 
 
-def _reject(stream: Stream, reason: str) -> None:
+def reject_sample(stream: Stream, reason: str) -> None:
     """Count a rejected sample by its reason; the first of each reason is said in the log."""
     stats = stream.stats
     stats.rejected += 1
