@@ -142,8 +142,10 @@ def test_numbas_own_cache_where_its_internals_are_not_as_expected(
 ) -> None:
     from numba.core.caching import Cache, FunctionCache
 
+    from mavest import _numba_cache
+
     monkeypatch.delattr(Cache, "_load_overload")
-    assert _jit._lean_cache_class() is None
+    assert _numba_cache.lean_cache_class() is None
     monkeypatch.setattr(_jit, "_KernelCache", None)
 
     def double(x: float) -> float:
