@@ -306,3 +306,17 @@ def test_cli_options_override_the_file(tmp_path: Path, capsys: pytest.CaptureFix
     (tmp_path / "bad.toml").write_text("[output]\nsysid = 1\n")
     assert main(["replay", str(flight), "--config", str(tmp_path / "bad.toml")]) == 2
     assert "unknown output parameter(s): sysid" in capsys.readouterr().err
+
+
+def test_the_answer_grid_is_kept_and_restarts_after_a_pause() -> None:
+    import math
+
+    from mavest.service.pipeline import next_output_after
+
+    # 50 Hz: the first estimate answered, the grid starts half a period on; then kept
+    assert next_output_after(-math.inf, 0.0, 50.0) == pytest.approx(0.01)
+    assert next_output_after(0.02, 0.021, 50.0) == pytest.approx(0.04)
+    # after a pause the grid restarts half a period on, rather than bursting to catch up
+    assert next_output_after(0.04, 3.0, 50.0) == pytest.approx(3.01)
+    # rate 0: every estimate answered, nothing due later
+    assert next_output_after(-math.inf, 5.0, 0.0) == -math.inf

@@ -73,6 +73,7 @@ from mavest.service.pipeline import (
     autopilot_restarted,
     autopilot_time,
     is_fixed_wing,
+    next_output_after,
     reject_sample,
     report_heading,
     report_health,
@@ -1016,13 +1017,12 @@ class BulkFeed:
         rate = self.pipeline.config.output.attitude_rate
         if rate <= 0.0:
             return np.arange(t.shape[0])
-        period = 1.0 / rate
         chosen = []
         next_output = stream.next_output
         for i, ti in enumerate(t.tolist()):
             if ti >= next_output:
                 chosen.append(i)
-                next_output = max(next_output + period, ti + 0.5 * period)
+                next_output = next_output_after(next_output, ti, rate)
         stream.next_output = next_output
         return np.array(chosen, dtype=np.int64)
 

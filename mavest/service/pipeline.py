@@ -639,10 +639,7 @@ class Pipeline:
         """ATTITUDE (and ATTITUDE_QUATERNION) for an estimate, in the MAVLink version of
         the sample it answers."""
         output = self.config.output
-        if output.attitude_rate > 0.0:
-            period = 1.0 / output.attitude_rate
-            # keep the grid; after a pause, restart it rather than burst to catch up
-            stream.next_output = max(stream.next_output + period, t + 0.5 * period)
+        stream.next_output = next_output_after(stream.next_output, t, output.attitude_rate)
         bias = estimate.bias
         rates = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
         encoder = self.encoder(stream.key.system)
@@ -866,6 +863,17 @@ _REQUESTS = frozenset(
         "PARAM_SET",
     )
 )
+
+
+def next_output_after(next_output: float, t: float, rate: float) -> float:
+    """When the next answer is due, the estimate at ``t`` answered (the one due at
+    ``next_output``), at ``rate`` answers a second (``output.attitude_rate``; 0: every
+    estimate is answered, and nothing changes). The grid is kept; after a pause it
+    restarts rather than bursts to catch up."""
+    if rate <= 0.0:
+        return next_output
+    period = 1.0 / rate
+    return max(next_output + period, t + 0.5 * period)
 
 
 def autopilot_time(time_boot_ms: Any) -> Any:
