@@ -278,13 +278,17 @@ def write_flight_tlog(
 ) -> str:
     """Write a simulated flight to ``path``; return a line describing it."""
     described: list[str] = []
-    records = flight_records(seconds, rate, autopilot, seed, errors, described)
-    # the first record builds the flight model: a simulator that cannot start leaves no file
+    _write_records(path, flight_records(seconds, rate, autopilot, seed, errors, described))
+    return f"wrote {path}: {described[0]}"
+
+
+def _write_records(path: str | Path, records: Iterator[tuple[int, bytes]]) -> None:
+    """Write a simulated log's records to ``path``. The first record builds the flight
+    model before the file is opened: a simulator that cannot start leaves no file."""
     first = next(records, None)
     with TlogWriter(path) as tlog:
         for stamp, packet in itertools.chain([first] if first else [], records):
             tlog.write(stamp, packet)
-    return f"wrote {path}: {described[0]}"
 
 
 def autopilot_records(
@@ -325,11 +329,7 @@ def write_autopilot_tlog(
     attitude_every: int = 20,
 ) -> None:
     """Write :func:`autopilot_records` to ``path`` (no file if the simulator cannot start)."""
-    records = autopilot_records(seconds, rate, autopilot, seed, attitude_every)
-    first = next(records, None)
-    with TlogWriter(path) as tlog:
-        for stamp, packet in itertools.chain([first] if first else [], records):
-            tlog.write(stamp, packet)
+    _write_records(path, autopilot_records(seconds, rate, autopilot, seed, attitude_every))
 
 
 def write_resting_tlog(path: str | Path, seconds: float = 2.0, rate: float = 200.0) -> None:
