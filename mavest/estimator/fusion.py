@@ -20,20 +20,6 @@ from mavest.estimator.layout import CHART_HEADING_TILT, ERROR_LEFT
 
 
 @kernel
-def _attitude_to_world(q: np.ndarray, P: np.ndarray, R: np.ndarray, out: np.ndarray) -> None:
-    """out (3 × 3) = R P_θθ Rᵀ, the attitude block of a body-frame (right error)
-    covariance in the world frame, R the attitude's matrix."""
-    so3.matrix_from_quat_into(q, R)
-    for i in range(3):
-        for j in range(3):
-            total = 0.0
-            for k in range(3):
-                for m in range(3):
-                    total += R[i, k] * P[k, m] * R[j, m]
-            out[i, j] = total
-
-
-@kernel
 def _turn_covariance(
     q: np.ndarray, P: np.ndarray, to_world: bool, R: np.ndarray, A: np.ndarray, out: np.ndarray
 ) -> None:
@@ -197,8 +183,11 @@ def fuse_block(
         else:
             for i in range(4):
                 prior_q[i] = q_b[j, i]
-            if right:
-                _attitude_to_world(q_b[j], P_b[j], R, Pb)
+            if right:  # (Pw is the forward covariance's only after this)
+                _turn_covariance(q_b[j], P_b[j], True, R, A, Pw)
+                for r in range(3):
+                    for c in range(3):
+                        Pb[r, c] = Pw[r, c]
             else:
                 for r in range(3):
                     for c in range(3):
