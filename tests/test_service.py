@@ -320,3 +320,25 @@ def test_the_answer_grid_is_kept_and_restarts_after_a_pause() -> None:
     assert next_output_after(0.04, 3.0, 50.0) == pytest.approx(3.01)
     # rate 0: every estimate answered, nothing due later
     assert next_output_after(-math.inf, 5.0, 0.0) == -math.inf
+
+
+def test_the_progress_bar_draws_its_share_at_most_five_times_a_second() -> None:
+    import io
+
+    from mavest.service.runners import ProgressBar
+
+    shown = io.StringIO()
+    bar = ProgressBar(shown, enabled=True)
+    assert bar.due(100.0)
+    bar.draw(0.5, "half")
+    assert not bar.due(100.1)  # too soon after the last
+    assert bar.due(100.1, final=True)  # but the final state always
+    assert bar.due(100.4)
+    bar.finish()
+    text = shown.getvalue()
+    assert f"\r  [{'#' * 15}{'.' * 15}] half" in text
+    assert text.endswith("\r" + " " * 78 + "\r")
+    quiet = io.StringIO()
+    assert not ProgressBar(quiet).due(100.0)  # not a terminal: nothing
+    ProgressBar(quiet).finish()
+    assert quiet.getvalue() == ""

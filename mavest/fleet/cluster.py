@@ -29,6 +29,7 @@ from distributed.comm.addressing import parse_address, parse_host_port
 from distributed.scheduler import KilledWorker
 
 from mavest.fleet.rows import LogTask, error_row, log_rows, warm_up
+from mavest.service.runners import ProgressBar
 
 log = logging.getLogger("mavest")
 
@@ -50,42 +51,30 @@ class FleetResult:
     interrupted: bool = False
 
 
-class Progress:
+class Progress(ProgressBar):
     """A one-line bar on a terminal: logs done of all, logs per second, time left
     (nothing when the output is not a terminal)."""
 
     def __init__(self, total: int, stream: TextIO = sys.stderr, enabled: bool | None = None):
+        super().__init__(stream, enabled)
         self.total = total
-        self.stream = stream
-        self.enabled = stream.isatty() if enabled is None else enabled
-        self._start = time.perf_counter()
-        self._last = -math.inf
 
     def begin(self) -> None:
         """The logs start now (the rate is counted from here, not from the cluster's start)."""
-        self._start = time.perf_counter()
+        self.start = time.perf_counter()
         self.update(0)
 
     def update(self, done: int) -> None:
         now = time.perf_counter()
-        if not self.enabled or (now - self._last < 0.2 and done < self.total):
+        if not self.due(now, final=done >= self.total):
             return
-        self._last = now
-        rate = done / max(now - self._start, 1e-9)
+        rate = done / max(now - self.start, 1e-9)
         left = (self.total - done) / rate if rate > 0 else math.inf
         eta = f"{left:.0f} s left" if math.isfinite(left) else "…"
-        width = 30
-        filled = round(width * done / max(self.total, 1))
-        self.stream.write(
-            f"\r  [{'#' * filled}{'.' * (width - filled)}] {done} of {self.total} logs, "
-            f"{rate:.2f} logs/s, {eta}   "
+        self.draw(
+            done / max(self.total, 1),
+            f"{done} of {self.total} logs, {rate:.2f} logs/s, {eta}   ",
         )
-        self.stream.flush()
-
-    def finish(self) -> None:
-        if self.enabled:
-            self.stream.write("\r" + " " * 78 + "\r")
-            self.stream.flush()
 
 
 @contextlib.contextmanager

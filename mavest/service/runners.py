@@ -300,37 +300,50 @@ def _settle_heap() -> None:
     gc.freeze()
 
 
-class _Progress:
-    """A one-line progress bar on a terminal (nothing when the output is not one)."""
+class ProgressBar:
+    """A one-line bar on a terminal, redrawn at most five times a second (nothing when
+    the output is not a terminal); what follows the bar is the caller's."""
 
-    def __init__(self, total: int, stream: TextIO = sys.stderr, enabled: bool | None = None):
-        self.total = max(total, 1)
+    WIDTH = 30
+
+    def __init__(self, stream: TextIO = sys.stderr, enabled: bool | None = None):
         self.stream = stream
         self.enabled = stream.isatty() if enabled is None else enabled
-        self._last = 0.0
-        self._start = time.perf_counter()
+        self._last = -math.inf
+        self.start = time.perf_counter()
 
-    def update(self, done: int, samples: int) -> None:
-        if not self.enabled:
-            return
-        now = time.perf_counter()
-        if now - self._last < 0.2:
-            return
+    def due(self, now: float, final: bool = False) -> bool:
+        """Whether to draw now (always the final state), counting it as drawn."""
+        if not self.enabled or (now - self._last < 0.2 and not final):
+            return False
         self._last = now
-        fraction = min(done / self.total, 1.0)
-        width = 30
-        filled = round(width * fraction)
-        rate = samples / max(now - self._start, 1e-9)
-        self.stream.write(
-            f"\r  [{'#' * filled}{'.' * (width - filled)}] {100 * fraction:5.1f}%  "
-            f"{samples} samples, {rate / 1000:.1f} k/s "
-        )
+        return True
+
+    def draw(self, fraction: float, text: str) -> None:
+        filled = round(self.WIDTH * min(fraction, 1.0))
+        self.stream.write(f"\r  [{'#' * filled}{'.' * (self.WIDTH - filled)}] {text}")
         self.stream.flush()
 
     def finish(self) -> None:
         if self.enabled:
-            self.stream.write("\r" + " " * 72 + "\r")
+            self.stream.write("\r" + " " * 78 + "\r")
             self.stream.flush()
+
+
+class _ReplayProgress(ProgressBar):
+    """The replay's bar: the share of the file read, samples estimated and their rate."""
+
+    def __init__(self, total: int, enabled: bool | None = None):
+        super().__init__(enabled=enabled)
+        self.total = max(total, 1)
+
+    def update(self, done: int, samples: int) -> None:
+        now = time.perf_counter()
+        if not self.due(now):
+            return
+        fraction = min(done / self.total, 1.0)
+        rate = samples / max(now - self.start, 1e-9)
+        self.draw(fraction, f"{100 * fraction:5.1f}%  {samples} samples, {rate / 1000:.1f} k/s ")
 
 
 async def replay(
@@ -366,7 +379,7 @@ async def replay(
     tlog = opened.tlog
     pipeline = Pipeline(config, out_tlog=tlog, sinks=opened.sinks)
     pipeline.smoothing = smooth
-    bar = _Progress(reader.size, enabled=progress)
+    bar = _ReplayProgress(reader.size, enabled=progress)
     _settle_heap()
     report = RunReport(pipeline, 0.0, source=source.label, outputs=outputs)
     heartbeat_period = 1.0 / config.output.heartbeat_rate if config.output.heartbeat_rate else 0.0
