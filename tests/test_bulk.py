@@ -24,7 +24,7 @@ from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 from test_hostile_input import CASES, Flight, _message_id, _repacked, _tlog_bytes, clean_flights
 
 from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
-from mavest.mavlink import bulk
+from mavest.mavlink import bulk, framing
 from mavest.mavlink.clock import WRAP_TICKS, ClockEvent, StreamClock
 from mavest.mavlink.messages import IMU_MESSAGES, MAVLink, decode_imu, mavlink2
 from mavest.mavlink.tlog import TlogReader, TlogWriter
@@ -358,62 +358,6 @@ def test_the_autopilots_attitude_goes_in_bulk(
     assert [s.vs_autopilot.count for s in report.pipeline.streams.values()] == [151]
 
 
-# ------------------------------------------------------------------ scanning
-
-
-def test_scan_finds_the_records_the_reader_finds(flights: dict[str, Flight]) -> None:
-    data = _tlog_bytes(flights["ardupilot"].chunks())
-    careful = [(r.timestamp_us, r.packet) for r in TlogReader(data)]
-    index = bulk.scan(np.frombuffer(data, dtype=np.uint8), 0, -1, 1 << 20)
-    scanned = [
-        (int(stamp), data[int(start) + 8 : int(end)])
-        for start, end, stamp in zip(index.start, index.end, index.stamp, strict=True)
-    ]
-    assert scanned == careful
-    headers = [MAVLink(None).decode(bytearray(packet)).get_header() for _, packet in careful]
-    assert index.system.tolist() == [h.srcSystem for h in headers]
-    assert index.component.tolist() == [h.srcComponent for h in headers]
-    assert index.message_id.tolist() == [h.msgId for h in headers]
-
-
-def test_the_crc_eight_bytes_at_a_time_is_pymavlinks() -> None:
-    """Every length around the eight-byte steps, from any offset and register."""
-    from pymavlink.mavutil import x25crc
-
-    rng = np.random.default_rng(3)
-    for length in [*range(40), 255, 280, 1001]:
-        data = rng.integers(0, 256, size=length + 11, dtype=np.uint8)
-        offset = int(rng.integers(0, 11))
-        chunk = bytes(data[offset : offset + length])
-        assert bulk._x25_run(data, offset, offset + length, 0xFFFF) == x25crc(chunk).crc
-        # from a register part way through: the same as accumulating the rest
-        head, tail = chunk[: length // 3], chunk[length // 3 :]
-        expected = x25crc(head)
-        register = expected.crc
-        expected.accumulate(tail)
-        start = offset + len(head)
-        assert bulk._x25_run(data, start, offset + length, register) == expected.crc
-
-
-def test_scan_stops_at_the_first_record_that_is_not_clean(flights: dict[str, Flight]) -> None:
-    records = flights["ardupilot"].records
-    damaged = bytearray(_tlog_bytes(records[:100]))
-    where = len(damaged)
-    stamp, packet = records[100]
-    broken = bytearray(packet)
-    broken[-3] ^= 0x55  # a payload byte: the CRC no longer matches
-    damaged += stamp.to_bytes(8, "big") + bytes(broken) + _tlog_bytes(records[101:200])
-    array = np.frombuffer(bytes(damaged), dtype=np.uint8)
-    index = bulk.scan(array, 0, -1, 1 << 20)
-    assert len(index) == 100 and int(index.end[-1]) == where
-    # from the next record on it is clean again
-    after = where + 8 + len(packet)
-    assert len(bulk.scan(array, after, stamp, 1 << 20)) == 99
-    # nor is a timestamp days away a record, nor a cut packet
-    assert len(bulk.scan(array, 0, stamp + 4 * 24 * 3600 * 10**6, 10)) == 0
-    assert len(bulk.scan(array[: where - 3], 0, -1, 1 << 20)) == 99
-
-
 # ------------------------------------------------------------------ decoding
 
 
@@ -473,7 +417,7 @@ def test_imu_fields_equal_decode_imu(name: str) -> None:
     packets = _imu_packets(name, 300, seed=len(name))
     data = b"".join((10**6 + i).to_bytes(8, "big") + p for i, p in enumerate(packets))
     array = np.frombuffer(data, dtype=np.uint8)
-    index = bulk.scan(array, 0, -1, 1000)
+    index = framing.scan(array, 0, -1, 1000)
     assert len(index) == len(packets)
     message_id = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}")
     fields = bulk.imu_fields(
@@ -504,7 +448,7 @@ def test_aiding_fields_equal_pymavlink(name: str) -> None:
     packets = _imu_packets(name, 300, seed=len(name))
     data = b"".join((10**6 + i).to_bytes(8, "big") + p for i, p in enumerate(packets))
     array = np.frombuffer(data, dtype=np.uint8)
-    index = bulk.scan(array, 0, -1, 1000)
+    index = framing.scan(array, 0, -1, 1000)
     assert len(index) == len(packets)
     decoded = service_bulk._Decoded(array, index, service_bulk.record_kinds(REPLAY_MESSAGES))
     for i, packet in enumerate(packets):
@@ -753,7 +697,7 @@ def test_records_written_in_bulk_end_at_a_whole_record_on_a_full_disk(
     records = flights["ardupilot"].records * 3
     data = _tlog_bytes(records)
     array = np.frombuffer(data, dtype=np.uint8)
-    index = bulk.scan(array, 0, -1, 1 << 20)
+    index = framing.scan(array, 0, -1, 1 << 20)
     assert len(index) == len(records)
     path = tmp_path / "out.tlog"
     writer = TlogWriter(path)

@@ -2,21 +2,18 @@
 
 A replay spends its time per message, not per byte: pymavlink builds a Python
 object for every packet it decodes and packs, at tens of µs each. Here the
-same work is done on whole runs of records in compiled loops:
+same work is done on whole runs of records, on the index that
+:func:`mavest.mavlink.framing.scan` makes of a clean stretch of a tlog:
 
-* :func:`scan` indexes the records of a clean stretch of a tlog (timestamp,
-  start byte, length, known message id, valid CRC), and stops at the first
-  record that is anything else, which the careful :class:`~mavest.mavlink.tlog.TlogReader`
-  then handles. A clean log goes through here whole; damage costs only itself.
 * :func:`decode_payloads` turns the payloads of one message type into a NumPy
   record array laid out as the message's wire format (MAVLink 2's trailing
   zeros restored, as pymavlink does), from which IMU samples and reference
   attitudes are read in bulk (:func:`imu_fields`, :func:`simstate_euler`).
 * :func:`attitude_packets` packs ATTITUDE and ATTITUDE_QUATERNION as the
-  encoder would (same bytes: MAVLink 2 with trailing zeros cut, or MAVLink 1
-  for samples that came so; CRC with the message's extra byte, the encoder's
-  sequence numbers), and :func:`interleave` lays the
-  input records and the answers out as the output tlog's records.
+  encoder does (:func:`mavest.mavlink.framing.pack_rows`, the packer the encoder
+  uses too, with the encoder's sequence numbers; MAVLink 1 for samples that came
+  so), and :func:`interleave` lays the input records and the answers out as the
+  output tlog's records.
 * :func:`packets` packs any message of wire-format records, each with its own
   sequence number (an onboard log's samples made MAVLink, :mod:`mavest.onboard.convert`).
 
@@ -32,7 +29,7 @@ import numpy as np
 
 from mavest import so3
 from mavest._jit import inplace_exact_kernel
-from mavest.mavlink import wire
+from mavest.mavlink.framing import Packets, RecordIndex, pack_rows
 from mavest.mavlink.messages import (
     HIGHRES_INERTIAL_BITS,
     HIGHRES_MAG_BITS,
@@ -40,13 +37,6 @@ from mavest.mavlink.messages import (
     SCALED_IMU_INSTANCE,
     mavlink2,
 )
-
-_MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as TlogReader (and pymavlink)
-
-# CRC extra byte per message id; -1 for ids this dialect does not define.
-CRC_EXTRA = np.full(max(mavlink2.mavlink_map) + 1, -1, dtype=np.int16)
-for _id, _class in mavlink2.mavlink_map.items():
-    CRC_EXTRA[_id] = _class.crc_extra
 
 # struct format characters → NumPy (little-endian, as MAVLink's wire)
 _STRUCT_TO_NUMPY = {
@@ -90,151 +80,6 @@ def wire_dtype(message_class: Any) -> np.dtype:
     dtype = np.dtype(fields)
     assert dtype.itemsize == message_class.unpacker.size
     return dtype
-
-
-class RecordIndex(NamedTuple):
-    """Where each record of a clean stretch is, and what it carries (arrays of one length)."""
-
-    start: np.ndarray  # int64: the record's first byte (its timestamp) in the file
-    end: np.ndarray  # int64: one past its packet's last byte
-    payload: np.ndarray  # int64: its payload's first byte
-    payload_length: np.ndarray  # int64
-    message_id: np.ndarray  # int64
-    system: np.ndarray  # int64
-    component: np.ndarray  # int64
-    stamp: np.ndarray  # int64: the record's time, µs
-
-    def __len__(self) -> int:
-        return int(self.start.shape[0])
-
-    def part(self, selection: Any) -> RecordIndex:
-        return RecordIndex(*(column[selection] for column in self))
-
-
-def _x25_tables(count: int) -> np.ndarray:
-    """Tables for MAVLink's CRC (X.25, CRC-16/MCRF4XX: reflected polynomial 0x8408)
-    eight bytes at a time: row k, entry b is the CRC register after byte b followed
-    by k zero bytes, from a zero register. The CRC is linear in the register and the
-    bytes, so eight bytes b0…b7 take the register c to
-    T7[(c & 0xFF) ^ b0] ^ T6[(c >> 8) ^ b1] ^ T5[b2] ^ … ^ T0[b7]: eight lookups
-    independent of each other instead of eight steps each waiting for the last
-    (slicing-by-8; the replay's scan and packing were a fifth of its processing)."""
-    tables = np.empty((count, 256), dtype=np.int64)
-    register = np.arange(256, dtype=np.int64)
-    for _ in range(8):
-        register = np.where(register & 1, (register >> 1) ^ 0x8408, register >> 1)
-    tables[0] = register
-    for k in range(1, count):
-        previous = tables[k - 1]
-        tables[k] = (previous >> 8) ^ tables[0][previous & 0xFF]
-    return tables
-
-
-_X25 = _x25_tables(8)
-
-
-@inplace_exact_kernel
-def _x25_update(crc: int, byte: int) -> int:
-    return (crc >> 8) ^ _X25[0, (crc & 0xFF) ^ byte]
-
-
-@inplace_exact_kernel
-def _x25_run(data: np.ndarray, start: int, stop: int, crc: int) -> int:
-    """The CRC register after bytes [start, stop) of ``data``, from ``crc``."""
-    k = start
-    while k + 8 <= stop:
-        crc = (
-            _X25[7, (crc & 0xFF) ^ data[k]]
-            ^ _X25[6, (crc >> 8) ^ data[k + 1]]
-            ^ _X25[5, data[k + 2]]
-            ^ _X25[4, data[k + 3]]
-            ^ _X25[3, data[k + 4]]
-            ^ _X25[2, data[k + 5]]
-            ^ _X25[1, data[k + 6]]
-            ^ _X25[0, data[k + 7]]
-        )
-        k += 8
-    while k < stop:
-        crc = _x25_update(crc, data[k])
-        k += 1
-    return crc
-
-
-@inplace_exact_kernel
-def _scan(
-    data: np.ndarray,
-    position: int,
-    last_us: int,
-    crc_extra: np.ndarray,
-    out: np.ndarray,
-) -> tuple[int, int, int]:
-    """Index clean records from ``position`` into ``out`` (rows: the RecordIndex columns).
-
-    Stops at the first record that is not clean or at ``out``'s capacity; returns
-    (records, the position after the last, its timestamp). ``last_us`` < 0: none yet.
-    """
-    n = data.shape[0]
-    count = 0
-    capacity = out.shape[1]
-    while count < capacity and position + 9 <= n:
-        stamp = 0
-        for k in range(8):
-            stamp = (stamp << 8) | np.int64(data[position + k])
-        if stamp < 0:  # beyond int64: not a time
-            break
-        if last_us >= 0 and abs(stamp - last_us) > _MAX_TIMESTAMP_JUMP_US:
-            break
-        p = position + 8
-        stx = data[p]
-        if stx == 0xFD:
-            if p + 10 > n:
-                break
-            length = np.int64(data[p + 1])
-            signature = 13 if data[p + 2] & 1 else 0
-            header = 10
-            message_id = (
-                np.int64(data[p + 7]) | (np.int64(data[p + 8]) << 8) | (np.int64(data[p + 9]) << 16)
-            )
-            system = np.int64(data[p + 5])
-            component = np.int64(data[p + 6])
-        elif stx == 0xFE:
-            if p + 6 > n:
-                break
-            length = np.int64(data[p + 1])
-            signature = 0
-            header = 6
-            message_id = np.int64(data[p + 5])
-            system = np.int64(data[p + 3])
-            component = np.int64(data[p + 4])
-        else:
-            break
-        end = p + header + length + 2 + signature
-        if end > n or message_id >= crc_extra.shape[0] or crc_extra[message_id] < 0:
-            break
-        crc = _x25_run(data, p + 1, p + header + length, 0xFFFF)
-        crc = _x25_update(crc, crc_extra[message_id])
-        body = p + header + length
-        if crc != (np.int64(data[body]) | (np.int64(data[body + 1]) << 8)):
-            break
-        out[0, count] = position
-        out[1, count] = end
-        out[2, count] = p + header
-        out[3, count] = length
-        out[4, count] = message_id
-        out[5, count] = system
-        out[6, count] = component
-        out[7, count] = stamp
-        count += 1
-        position = end
-        last_us = stamp
-    return count, position, last_us
-
-
-def scan(data: np.ndarray, position: int, last_us: int, capacity: int) -> RecordIndex:
-    """The clean records from ``position`` on, at most ``capacity`` (see :func:`_scan`)."""
-    out = np.empty((8, capacity), dtype=np.int64)
-    count, _, _ = _scan(data, position, last_us, CRC_EXTRA, out)
-    return RecordIndex(*(np.ascontiguousarray(out[k, :count]) for k in range(8)))
 
 
 @inplace_exact_kernel
@@ -329,57 +174,6 @@ ATTITUDE_QUATERNION_DTYPE = wire_dtype(_ATTITUDE_QUATERNION)
 
 
 @inplace_exact_kernel
-def _pack(
-    payloads: np.ndarray,
-    message_id: int,
-    crc_extra: int,
-    mavlink1: np.ndarray,
-    mavlink1_length: int,
-    system: int,
-    component: int,
-    seqs: np.ndarray,
-    out: np.ndarray,
-    out_length: np.ndarray,
-) -> None:
-    """Packets of these payloads, as :func:`mavest.mavlink.wire.pack` packs them: MAVLink 2
-    (trailing zeros cut), or MAVLink 1 where ``mavlink1`` is set (the first
-    ``mavlink1_length`` bytes: the base fields); row i's sequence number ``seqs[i]``."""
-    for i in range(payloads.shape[0]):
-        row = out[i]
-        seq = seqs[i] & 0xFF
-        if mavlink1[i]:
-            length = mavlink1_length
-            header = 6
-            row[0] = 0xFE
-            row[1] = length
-            row[2] = seq
-            row[3] = system
-            row[4] = component
-            row[5] = message_id
-        else:
-            length = payloads.shape[1]
-            while length > 1 and payloads[i, length - 1] == 0:
-                length -= 1
-            header = 10
-            row[0] = 0xFD
-            row[1] = length
-            row[2] = 0
-            row[3] = 0
-            row[4] = seq
-            row[5] = system
-            row[6] = component
-            row[7] = message_id & 0xFF
-            row[8] = (message_id >> 8) & 0xFF
-            row[9] = (message_id >> 16) & 0xFF
-        for k in range(length):
-            row[header + k] = payloads[i, k]
-        crc = _x25_update(_x25_run(row, 1, header + length, 0xFFFF), crc_extra)
-        row[header + length] = crc & 0xFF
-        row[header + length + 1] = crc >> 8
-        out_length[i] = header + length + 2
-
-
-@inplace_exact_kernel
 def _euler_rows(q: np.ndarray, out: np.ndarray) -> None:
     for i in range(q.shape[0]):
         so3.euler_zyx_from_quat_into(q[i], out[i])
@@ -390,13 +184,6 @@ def euler_rows(q: np.ndarray) -> np.ndarray:
     out = np.empty((q.shape[0], 3))
     _euler_rows(np.ascontiguousarray(q), out)
     return out
-
-
-class Packets(NamedTuple):
-    """Packets of equal capacity, one per row, each ``length`` bytes long."""
-
-    data: np.ndarray  # (n, capacity) uint8
-    length: np.ndarray  # (n,) int64
 
 
 def attitude_packets(
@@ -458,22 +245,9 @@ def _packed(
     seqs: np.ndarray,
 ) -> Packets:
     raw = payloads.view(np.uint8).reshape(payloads.shape[0], payloads.dtype.itemsize)
-    n, width = raw.shape
-    out = np.empty((n, width + 12), dtype=np.uint8)
-    length = np.empty(n, dtype=np.int64)
-    _pack(
-        raw,
-        message_class.id,
-        message_class.crc_extra,
-        np.ascontiguousarray(mavlink1, dtype=np.bool_),
-        wire.MAVLINK1_LENGTHS[message_class.id],
-        system,
-        component,
-        np.ascontiguousarray(seqs, dtype=np.int64),
-        out,
-        length,
+    return pack_rows(
+        raw, message_class.id, message_class.crc_extra, mavlink1, system, component, seqs
     )
-    return Packets(out, length)
 
 
 @inplace_exact_kernel

@@ -22,7 +22,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from mavest.mavlink import bulk
+from mavest.mavlink import framing
 from mavest.mavlink.messages import MAVLink, mavlink2
 
 _STX_V1 = 0xFE
@@ -198,16 +198,16 @@ class TlogReader:
             self._array = np.frombuffer(self._data, dtype=np.uint8)
         return self._array
 
-    def scan(self, capacity: int) -> bulk.RecordIndex:
+    def scan(self, capacity: int) -> framing.RecordIndex:
         """The next clean records (at most ``capacity``), indexed and passed over.
 
         Clean: a plausible timestamp, a whole packet of a message this dialect
-        defines, its CRC valid (:func:`mavest.mavlink.bulk.scan`). Stops at the
+        defines, its CRC valid (:func:`mavest.mavlink.framing.scan`). Stops at the
         first record that is not; iterating the reader from there reads it (and
         whatever damage follows) the careful way. Empty when no clean record is next.
         """
         last_us = -1 if self._last_us is None else self._last_us
-        records = bulk.scan(self.array, self.position, last_us, capacity)
+        records = framing.scan(self.array, self.position, last_us, capacity)
         if len(records):
             self.position = int(records.end[-1])
             self._last_us = int(records.stamp[-1])

@@ -47,7 +47,7 @@ import numpy as np
 
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.online import ESTIMATE, REFERENCE
-from mavest.mavlink import bulk, wire
+from mavest.mavlink import bulk, framing, wire
 from mavest.mavlink.messages import (
     IMU_FORMATS,
     IMU_MESSAGES,
@@ -144,7 +144,7 @@ _REGIME_EVENTS = (
 
 def record_kinds(wanted: frozenset[int]) -> np.ndarray:
     """Per message id, what the pipeline does with it (PASSIVE … OTHER)."""
-    kinds = np.zeros(bulk.CRC_EXTRA.shape[0], dtype=np.int8)
+    kinds = np.zeros(framing.CRC_EXTRA.shape[0], dtype=np.int8)
     for message_id in wanted:
         kinds[message_id] = OTHER
     for name in _INLINE_MESSAGES:
@@ -173,7 +173,7 @@ def usable(pipeline: Pipeline) -> bool:
 class _Decoded:
     """The IMU and SIMSTATE records of a run, decoded, one row per record of the run."""
 
-    def __init__(self, data: np.ndarray, records: bulk.RecordIndex, kinds: np.ndarray) -> None:
+    def __init__(self, data: np.ndarray, records: framing.RecordIndex, kinds: np.ndarray) -> None:
         n = len(records)
         self.kind = kinds[records.message_id]
         self.gyro = np.empty((n, 3))
@@ -299,7 +299,7 @@ class BulkFeed:
         self._executor: ThreadPoolExecutor | None = None  # the filter's thread
 
     def feed(
-        self, records: bulk.RecordIndex, beat_period_us: int = 0, next_beat_us: int = 0
+        self, records: framing.RecordIndex, beat_period_us: int = 0, next_beat_us: int = 0
     ) -> int:
         """Handle these records (clean, in file order) as the replay loop would, with
         a HEARTBEAT of ours after a record once one is due (as the loop sends them).
@@ -333,7 +333,7 @@ class BulkFeed:
     # ---------------------------------------------------------------- one run
 
     def _run(
-        self, records: bulk.RecordIndex, decoded: _Decoded, cuts: np.ndarray, start: int
+        self, records: framing.RecordIndex, decoded: _Decoded, cuts: np.ndarray, start: int
     ) -> int:
         """Handle records from ``start``: a stretch in bulk, or one record alone.
         Returns where the next run starts."""
@@ -356,7 +356,7 @@ class BulkFeed:
         return self._estimate(records, decoded, start, end, rows, stream)
 
     def _imu_status(
-        self, records: bulk.RecordIndex, decoded: _Decoded, rows: np.ndarray
+        self, records: framing.RecordIndex, decoded: _Decoded, rows: np.ndarray
     ) -> tuple[np.ndarray, Stream | None]:
         """Per IMU record, what the pipeline does with it; the stream estimated in bulk."""
         status = np.full(rows.shape[0], _ALONE, dtype=np.int8)
@@ -395,7 +395,7 @@ class BulkFeed:
 
     def _truth_end(
         self,
-        records: bulk.RecordIndex,
+        records: framing.RecordIndex,
         decoded: _Decoded,
         start: int,
         end: int,
@@ -417,7 +417,9 @@ class BulkFeed:
             return int(truth_rows[np.argmax(foreign)])
         return end
 
-    def _beats_end(self, records: bulk.RecordIndex, decoded: _Decoded, start: int, end: int) -> int:
+    def _beats_end(
+        self, records: framing.RecordIndex, decoded: _Decoded, start: int, end: int
+    ) -> int:
         """``end``, or the first HEARTBEAT before it that changes what the pipeline knows
         of a vehicle (a new one, its fixed wing, its MAVLink version), which the stretch
         depends on."""
@@ -439,10 +441,10 @@ class BulkFeed:
                 return row
         return end
 
-    def _packet(self, records: bulk.RecordIndex, row: int) -> bytes:
+    def _packet(self, records: framing.RecordIndex, row: int) -> bytes:
         return self.data[int(records.start[row]) + 8 : int(records.end[row])].tobytes()
 
-    def _decode(self, records: bulk.RecordIndex, row: int) -> Any:
+    def _decode(self, records: framing.RecordIndex, row: int) -> Any:
         """The message of a record handled one at a time (each decoded once per feed)."""
         message = self._decoded.get(row)
         if message is None:
@@ -454,7 +456,7 @@ class BulkFeed:
             self._decoded[row] = message
         return message
 
-    def _alone(self, records: bulk.RecordIndex, row: int) -> None:
+    def _alone(self, records: framing.RecordIndex, row: int) -> None:
         """One record the way the replay loop takes it: written, decoded, handled, and
         a HEARTBEAT of ours after it if one is due."""
         stamp = int(records.stamp[row])
@@ -468,7 +470,7 @@ class BulkFeed:
 
     def _estimate(
         self,
-        records: bulk.RecordIndex,
+        records: framing.RecordIndex,
         decoded: _Decoded,
         start: int,
         end: int,
@@ -597,7 +599,7 @@ class BulkFeed:
 
     def _aiding(
         self,
-        records: bulk.RecordIndex,
+        records: framing.RecordIndex,
         decoded: _Decoded,
         start: int,
         stream: Stream,
@@ -655,7 +657,7 @@ class BulkFeed:
 
     def _take(
         self,
-        records: bulk.RecordIndex,
+        records: framing.RecordIndex,
         decoded: _Decoded,
         start: int,
         stop: int,
@@ -743,7 +745,7 @@ class BulkFeed:
 
     def _write(
         self,
-        records: bulk.RecordIndex,
+        records: framing.RecordIndex,
         start: int,
         stop: int,
         stream: Stream,
@@ -767,10 +769,10 @@ class BulkFeed:
         )
         self.tlog.write_records(data, ends)
 
-    def _write_records(self, records: bulk.RecordIndex, start: int, stop: int) -> None:
+    def _write_records(self, records: framing.RecordIndex, start: int, stop: int) -> None:
         """Records [start, stop) to the output tlog as they are (nothing answered)."""
         assert self.tlog is not None
-        empty = bulk.Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
+        empty = framing.Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
         answer_of = np.full(stop - start, -1, dtype=np.int64)
         data, ends = bulk.interleave(
             self.data, records.part(slice(start, stop)), answer_of, empty, None
@@ -779,7 +781,7 @@ class BulkFeed:
 
     def _book_and_compare(
         self,
-        records: bulk.RecordIndex,
+        records: framing.RecordIndex,
         decoded: _Decoded,
         start: int,
         stop: int,
@@ -823,7 +825,7 @@ class BulkFeed:
 
     def _autopilot(
         self,
-        records: bulk.RecordIndex,
+        records: framing.RecordIndex,
         decoded: _Decoded,
         rows: np.ndarray,
         stream: Stream | None,
@@ -864,7 +866,7 @@ class BulkFeed:
 
     def _tell_sinks(
         self,
-        records: bulk.RecordIndex,
+        records: framing.RecordIndex,
         decoded: _Decoded,
         stream: Stream | None,
         steps: _Steps | None,
@@ -1027,8 +1029,8 @@ class BulkFeed:
         return np.array(chosen, dtype=np.int64)
 
     def _answers(
-        self, records: bulk.RecordIndex, stream: Stream, steps: _Steps, answered: np.ndarray
-    ) -> tuple[bulk.Packets, bulk.Packets | None]:
+        self, records: framing.RecordIndex, stream: Stream, steps: _Steps, answered: np.ndarray
+    ) -> tuple[framing.Packets, framing.Packets | None]:
         """ATTITUDE (and ATTITUDE_QUATERNION) for the answered samples, as
         the pipeline packs them, with the encoder's sequence numbers, each in the
         MAVLink version its sample came in."""
@@ -1080,7 +1082,7 @@ def _part(inputs: tuple[np.ndarray, ...], start: int, size: int, count: int) -> 
 
 
 def _aiding_rows(
-    records: bulk.RecordIndex, decoded: _Decoded, start: int, stop: int, vehicle: Vehicle
+    records: framing.RecordIndex, decoded: _Decoded, start: int, stop: int, vehicle: Vehicle
 ) -> np.ndarray:
     """Rows [start, stop) of this vehicle's GPS and airspeed messages (decoded in bulk)."""
     inline = start + np.flatnonzero(decoded.kind[start:stop] == INLINE)

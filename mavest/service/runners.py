@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, TextIO
 import numpy as np
 
 from mavest.estimator import Estimator
-from mavest.mavlink.bulk import RecordIndex
+from mavest.mavlink.framing import RecordIndex
 from mavest.mavlink.links import Link, make_link, parse_endpoint
 from mavest.mavlink.messages import IMU_MESSAGES, StreamKey
 from mavest.mavlink.signing import Signing

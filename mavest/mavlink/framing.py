@@ -1,0 +1,338 @@
+"""MAVLink packets found, checked and made in compiled loops: mavest's one packet
+scanner, its one CRC and its one packer.
+
+Every path on which mavest reads or writes MAVLink bytes itself goes through here:
+
+* :func:`scan` indexes the records of a clean stretch of a tlog (timestamp, start
+  byte, length, known message id, valid CRC) and stops at the first record that is
+  anything else, which the careful :class:`~mavest.mavlink.tlog.TlogReader` then
+  hands to pymavlink's parser. A clean log goes through here whole; damage costs
+  only itself.
+* :func:`scan_packets` does the same for bare packets, as a UDP datagram holds them:
+  :func:`mavest.mavlink.wire.decode_datagram` builds message objects from its index.
+* :func:`pack_rows` packs messages, one or many at a time, as pymavlink packs them
+  (MAVLink 2 with the payload's trailing zeros cut, or MAVLink 1, the base fields
+  whole), each with its own sequence number: mavest's own messages on the live
+  path (:func:`mavest.mavlink.wire.pack`) and the replay's answers in bulk.
+
+The CRC is MAVLink's X.25 (CRC-16/MCRF4XX) over the packet after its start byte and
+the message's extra byte (:data:`CRC_EXTRA`). It runs inside the compiled loops,
+where no library's CRC can be called; tests/test_framing.py checks it, the scanner
+and the packer against pymavlink on the same bytes.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from mavest._jit import inplace_exact_kernel
+
+_MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as TlogReader (and pymavlink)
+_SMALLEST_PACKET = 8  # bytes: MAVLink 1's header and CRC around an empty payload
+
+# CRC extra byte per message id; -1 for ids this dialect does not define.
+CRC_EXTRA = np.full(max(mavlink2.mavlink_map) + 1, -1, dtype=np.int16)
+for _id, _class in mavlink2.mavlink_map.items():
+    CRC_EXTRA[_id] = _class.crc_extra
+
+
+@functools.cache
+def mavlink1_lengths() -> dict[int, int]:
+    """The MAVLink 1 payload length of each message MAVLink 1 can carry: its fields
+    without the extensions, which MAVLink 1 does not have (the MAVLink 1 dialect's whole
+    payload). Its dialect is loaded on first use, as few vehicles need it."""
+    from pymavlink.dialects.v10 import ardupilotmega as mavlink1
+
+    return {
+        message_id: message_class.unpacker.size
+        for message_id, message_class in mavlink1.mavlink_map.items()
+    }
+
+
+class RecordIndex(NamedTuple):
+    """Where each record of a clean stretch is, and what it carries (arrays of one length)."""
+
+    start: np.ndarray  # int64: the record's first byte (its timestamp) in the file
+    end: np.ndarray  # int64: one past its packet's last byte
+    payload: np.ndarray  # int64: its payload's first byte
+    payload_length: np.ndarray  # int64
+    message_id: np.ndarray  # int64
+    system: np.ndarray  # int64
+    component: np.ndarray  # int64
+    stamp: np.ndarray  # int64: the record's time, µs
+
+    def __len__(self) -> int:
+        return int(self.start.shape[0])
+
+    def part(self, selection: Any) -> RecordIndex:
+        return RecordIndex(*(column[selection] for column in self))
+
+
+def _x25_tables(count: int) -> np.ndarray:
+    """Tables for MAVLink's CRC (X.25, CRC-16/MCRF4XX: reflected polynomial 0x8408)
+    eight bytes at a time: row k, entry b is the CRC register after byte b followed
+    by k zero bytes, from a zero register. The CRC is linear in the register and the
+    bytes, so eight bytes b0…b7 take the register c to
+    T7[(c & 0xFF) ^ b0] ^ T6[(c >> 8) ^ b1] ^ T5[b2] ^ … ^ T0[b7]: eight lookups
+    independent of each other instead of eight steps each waiting for the last
+    (slicing-by-8; the replay's scan and packing were a fifth of its processing)."""
+    tables = np.empty((count, 256), dtype=np.int64)
+    register = np.arange(256, dtype=np.int64)
+    for _ in range(8):
+        register = np.where(register & 1, (register >> 1) ^ 0x8408, register >> 1)
+    tables[0] = register
+    for k in range(1, count):
+        previous = tables[k - 1]
+        tables[k] = (previous >> 8) ^ tables[0][previous & 0xFF]
+    return tables
+
+
+_X25 = _x25_tables(8)
+
+
+@inplace_exact_kernel
+def _x25_update(crc: int, byte: int) -> int:
+    return (crc >> 8) ^ _X25[0, (crc & 0xFF) ^ byte]
+
+
+@inplace_exact_kernel
+def crc_register(data: np.ndarray, start: int, stop: int, crc: int) -> int:
+    """The CRC register after bytes [start, stop) of ``data``, from ``crc`` (0xFFFF
+    to begin a packet's)."""
+    k = start
+    while k + 8 <= stop:
+        crc = (
+            _X25[7, (crc & 0xFF) ^ data[k]]
+            ^ _X25[6, (crc >> 8) ^ data[k + 1]]
+            ^ _X25[5, data[k + 2]]
+            ^ _X25[4, data[k + 3]]
+            ^ _X25[3, data[k + 4]]
+            ^ _X25[2, data[k + 5]]
+            ^ _X25[1, data[k + 6]]
+            ^ _X25[0, data[k + 7]]
+        )
+        k += 8
+    while k < stop:
+        crc = _x25_update(crc, data[k])
+        k += 1
+    return crc
+
+
+@inplace_exact_kernel
+def _scan(
+    data: np.ndarray,
+    position: int,
+    last_us: int,
+    stamped: bool,
+    crc_extra: np.ndarray,
+    out: np.ndarray,
+) -> tuple[int, int, int]:
+    """Index clean records (``stamped``: each packet after its 8-byte big-endian time, as
+    a tlog's) or bare packets from ``position`` into ``out`` (rows: the RecordIndex
+    columns; stamp 0 for bare packets).
+
+    Stops at the first record that is not clean or at ``out``'s capacity; returns
+    (records, the position after the last, its timestamp). ``last_us`` < 0: none yet.
+    """
+    n = data.shape[0]
+    count = 0
+    capacity = out.shape[1]
+    prefix = 8 if stamped else 0
+    while count < capacity and position + prefix + 1 <= n:
+        stamp = 0
+        if stamped:
+            for k in range(8):
+                stamp = (stamp << 8) | np.int64(data[position + k])
+            if stamp < 0:  # beyond int64: not a time
+                break
+            if last_us >= 0 and abs(stamp - last_us) > _MAX_TIMESTAMP_JUMP_US:
+                break
+        p = position + prefix
+        stx = data[p]
+        if stx == 0xFD:
+            if p + 10 > n:
+                break
+            length = np.int64(data[p + 1])
+            signature = 13 if data[p + 2] & 1 else 0
+            header = 10
+            message_id = (
+                np.int64(data[p + 7]) | (np.int64(data[p + 8]) << 8) | (np.int64(data[p + 9]) << 16)
+            )
+            system = np.int64(data[p + 5])
+            component = np.int64(data[p + 6])
+        elif stx == 0xFE:
+            if p + 6 > n:
+                break
+            length = np.int64(data[p + 1])
+            signature = 0
+            header = 6
+            message_id = np.int64(data[p + 5])
+            system = np.int64(data[p + 3])
+            component = np.int64(data[p + 4])
+        else:
+            break
+        end = p + header + length + 2 + signature
+        if end > n or message_id >= crc_extra.shape[0] or crc_extra[message_id] < 0:
+            break
+        crc = crc_register(data, p + 1, p + header + length, 0xFFFF)
+        crc = _x25_update(crc, crc_extra[message_id])
+        body = p + header + length
+        if crc != (np.int64(data[body]) | (np.int64(data[body + 1]) << 8)):
+            break
+        out[0, count] = position
+        out[1, count] = end
+        out[2, count] = p + header
+        out[3, count] = length
+        out[4, count] = message_id
+        out[5, count] = system
+        out[6, count] = component
+        out[7, count] = stamp
+        count += 1
+        position = end
+        if stamped:
+            last_us = stamp
+    return count, position, last_us
+
+
+def scan(data: np.ndarray, position: int, last_us: int, capacity: int) -> RecordIndex:
+    """The clean tlog records from ``position`` on, at most ``capacity`` (see :func:`_scan`)."""
+    out = np.empty((8, capacity), dtype=np.int64)
+    count, _, _ = _scan(data, position, last_us, True, CRC_EXTRA, out)
+    return RecordIndex(*(np.ascontiguousarray(out[k, :count]) for k in range(8)))
+
+
+def scan_packets(data: np.ndarray) -> tuple[np.ndarray, int]:
+    """The clean bare packets at the front of ``data`` (uint8): their index as rows of the
+    RecordIndex columns, shape (8, packets), and the position after the last (``data``'s
+    length when every byte is in a clean packet)."""
+    out = np.empty((8, data.shape[0] // _SMALLEST_PACKET + 1), dtype=np.int64)
+    count, end, _ = _scan(data, 0, -1, False, CRC_EXTRA, out)
+    return out[:, :count], end
+
+
+@inplace_exact_kernel
+def _pack(
+    payloads: np.ndarray,
+    message_id: int,
+    crc_extra: int,
+    mavlink1: np.ndarray,
+    mavlink1_length: int,
+    system: int,
+    component: int,
+    seqs: np.ndarray,
+    out: np.ndarray,
+    out_length: np.ndarray,
+) -> None:
+    """Packets of these payloads: MAVLink 2 (trailing zeros cut, one kept), or MAVLink 1
+    where ``mavlink1`` is set (the first ``mavlink1_length`` bytes: the base fields);
+    row i's sequence number ``seqs[i]``."""
+    for i in range(payloads.shape[0]):
+        row = out[i]
+        seq = seqs[i] & 0xFF
+        if mavlink1[i]:
+            length = mavlink1_length
+            header = 6
+            row[0] = 0xFE
+            row[1] = length
+            row[2] = seq
+            row[3] = system
+            row[4] = component
+            row[5] = message_id
+        else:
+            length = payloads.shape[1]
+            while length > 1 and payloads[i, length - 1] == 0:
+                length -= 1
+            header = 10
+            row[0] = 0xFD
+            row[1] = length
+            row[2] = 0
+            row[3] = 0
+            row[4] = seq
+            row[5] = system
+            row[6] = component
+            row[7] = message_id & 0xFF
+            row[8] = (message_id >> 8) & 0xFF
+            row[9] = (message_id >> 16) & 0xFF
+        for k in range(length):
+            row[header + k] = payloads[i, k]
+        crc = _x25_update(crc_register(row, 1, header + length, 0xFFFF), crc_extra)
+        row[header + length] = crc & 0xFF
+        row[header + length + 1] = crc >> 8
+        out_length[i] = header + length + 2
+
+
+class Packets(NamedTuple):
+    """Packets of equal capacity, one per row, each ``length`` bytes long."""
+
+    data: np.ndarray  # (n, capacity) uint8
+    length: np.ndarray  # (n,) int64
+
+
+def pack_rows(
+    payloads: np.ndarray,
+    message_id: int,
+    crc_extra: int,
+    mavlink1: np.ndarray,
+    system: int,
+    component: int,
+    seqs: np.ndarray,
+) -> Packets:
+    """The unsigned packets of ``payloads`` ((n, width) uint8: each message's wire-order
+    bytes, extensions included), from ``system``/``component``, row i with sequence
+    number ``seqs[i]`` (mod 256): MAVLink 2, or MAVLink 1 where ``mavlink1[i]`` is set
+    (KeyError for a message MAVLink 1 cannot carry)."""
+    n, width = payloads.shape
+    mavlink1 = np.ascontiguousarray(mavlink1, dtype=np.bool_)
+    mavlink1_length = mavlink1_lengths()[message_id] if mavlink1.any() else 0
+    out = np.empty((n, width + 12), dtype=np.uint8)
+    length = np.empty(n, dtype=np.int64)
+    _pack(
+        np.ascontiguousarray(payloads, dtype=np.uint8),
+        message_id,
+        crc_extra,
+        mavlink1,
+        mavlink1_length,
+        system,
+        component,
+        np.ascontiguousarray(seqs, dtype=np.int64),
+        out,
+        length,
+    )
+    return Packets(out, length)
+
+
+_ONE_MAVLINK1 = np.ones(1, dtype=np.bool_)
+_ONE_MAVLINK2 = np.zeros(1, dtype=np.bool_)
+
+
+def pack_one(
+    payload: bytes,
+    message_id: int,
+    crc_extra: int,
+    seq: int,
+    system: int,
+    component: int,
+    mavlink1: bool = False,
+) -> bytes:
+    """One message's packet, as :func:`pack_rows` packs a row of ``payload``: with less
+    of NumPy's set-up around the packer, for the live path's messages one at a time."""
+    row = np.frombuffer(payload, dtype=np.uint8).reshape(1, -1)
+    out = np.empty((1, row.shape[1] + 12), dtype=np.uint8)
+    length = np.empty(1, dtype=np.int64)
+    _pack(
+        row,
+        message_id,
+        crc_extra,
+        _ONE_MAVLINK1 if mavlink1 else _ONE_MAVLINK2,
+        mavlink1_lengths()[message_id] if mavlink1 else 0,
+        system,
+        component,
+        np.array([seq], dtype=np.int64),
+        out,
+        length,
+    )
+    return out[0, : length[0]].tobytes()
