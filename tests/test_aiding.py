@@ -14,7 +14,15 @@ from scipy.spatial.transform import Rotation
 from mavest import Estimator
 from mavest.estimator.config import EstimatorConfig
 from mavest.estimator.layout import StepFlags
-from mavest.service.aiding import GpsAcceleration, gps_acceleration_at
+from mavest.service.aiding import (
+    AIRSPEED_MAX_AGE,
+    GPS_FIX_MAX_AGE,
+    GPS_MAX_AGE,
+    GpsAcceleration,
+    airspeed_fresh,
+    gps_acceleration_at,
+    gps_fresh,
+)
 
 G = 9.80665
 RATE = 200.0
@@ -203,6 +211,23 @@ def test_gps_acceleration_for_many_samples_is_at_sample_by_sample() -> None:
     ours = gps_acceleration_at(accel, accel_t, fix_t, t)
     np.testing.assert_array_equal(ours, expected)
     assert 0.2 * n < np.count_nonzero(~np.isnan(expected[:, 0])) < 0.8 * n
+
+
+def test_freshness_decides_alike_on_one_sample_and_on_arrays() -> None:
+    """The live path asks for one sample's time, the replay for a block's: the same
+    verdicts, a bool for one, at and around each limit (and with nothing known yet)."""
+    ages = [-1e-9, 0.0, 0.3, GPS_MAX_AGE, GPS_MAX_AGE + 1e-9, 1.0, 2.0, 2.0 + 1e-9, math.inf]
+    t = 10.0
+    cases = [(t, t - a, t - f) for a in ages for f in ages]
+    for now, accel_t, fix_t in cases:
+        one = gps_fresh(now, accel_t, fix_t)
+        expected = 0.0 <= now - accel_t <= GPS_MAX_AGE and 0.0 <= now - fix_t <= GPS_FIX_MAX_AGE
+        assert type(one) is bool and one == expected
+        one = airspeed_fresh(now, fix_t)
+        assert type(one) is bool and one == (0.0 <= now - fix_t <= AIRSPEED_MAX_AGE)
+    now, accel_t, fix_t = (np.array(column) for column in zip(*cases, strict=True))
+    assert gps_fresh(now, accel_t, fix_t).tolist() == [gps_fresh(*case) for case in cases]
+    assert airspeed_fresh(now, fix_t).tolist() == [airspeed_fresh(c[0], c[2]) for c in cases]
 
 
 def test_velocity_reports_by_field_are_velocity_messages() -> None:

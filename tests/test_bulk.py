@@ -358,6 +358,51 @@ def test_the_autopilots_attitude_goes_in_bulk(
     assert [s.vs_autopilot.count for s in report.pipeline.streams.values()] == [151]
 
 
+# ------------------------------------------------------------------ the rules, once
+
+
+def _within(v: tuple[float, float, float], limit: float) -> bool:
+    return all(-limit <= x <= limit for x in v)  # (chained: a NaN fails both)
+
+
+def test_sample_rules_decide_alike_on_one_sample_and_on_columns() -> None:
+    """The pipeline's sample rules take one sample (numbers) live and a block (columns)
+    in replay: each way the same verdicts as a plain statement of the rule, a bool for
+    one sample; NaN, infinities, -0.0 and values at and just past the limits among them."""
+    from mavest.service.pipeline import MAX_ACCEL, MAX_GYRO, MAX_MAG, usable_mag, valid_sample
+
+    values = [0.0, -0.0, 1.0, -MAX_GYRO, MAX_GYRO, math.nextafter(MAX_GYRO, math.inf)]
+    values += [MAX_ACCEL, -math.nextafter(MAX_ACCEL, math.inf), MAX_MAG, 1e9]
+    values += [math.inf, -math.inf, math.nan]
+    rng = random.Random(2)
+
+    def axes() -> tuple[float, float, float]:  # mostly plain readings, a third odd
+        return tuple(  # type: ignore[return-value]
+            rng.choice(values) if rng.random() < 0.3 else rng.uniform(-20.0, 20.0) for _ in range(3)
+        )
+
+    samples = [(axes(), axes(), axes(), rng.random() < 0.1) for _ in range(5000)]
+    expected_valid, expected_mag = [], []
+    for gyro, accel, mag, saturated in samples:
+        expected_valid.append(
+            _within(gyro, MAX_GYRO)
+            and _within(accel, MAX_ACCEL)
+            and not saturated
+            and accel != (0.0, 0.0, 0.0)
+        )
+        expected_mag.append(mag != (0.0, 0.0, 0.0) and _within(mag, MAX_MAG))
+        one = valid_sample(gyro, accel, saturated)
+        assert type(one) is bool and one == expected_valid[-1]
+        one = usable_mag(mag)
+        assert type(one) is bool and one == expected_mag[-1]
+    assert 0.05 * len(samples) < sum(expected_valid) < 0.95 * len(samples)
+    gyro, accel, mag = (np.array([s[k] for s in samples]) for k in range(3))
+    saturated = np.array([s[3] for s in samples])
+    block = valid_sample(tuple(gyro.T), tuple(accel.T), saturated)
+    assert block.tolist() == expected_valid
+    assert usable_mag(tuple(mag.T)).tolist() == expected_mag
+
+
 # ------------------------------------------------------------------ decoding
 
 

@@ -64,7 +64,7 @@ from mavest.mavlink import bulk, wire
 from mavest.mavlink.messages import IMU_FORMATS, mavlink2, time_boot_ms_many
 from mavest.mavlink.tlog import TlogReader, TlogWriter
 from mavest.service.config import ServiceConfig
-from mavest.service.pipeline import MAX_MAG
+from mavest.service.pipeline import usable_mag
 from mavest.service.process import MAVEST
 from mavest.service.runners import REPLAY_MESSAGES
 from mavest.sim.vehicle import write_autopilot_tlog
@@ -200,7 +200,7 @@ def time_stages(log: Path, out: Path) -> StageTimes:
                     raise RuntimeError(f"{log}: a record wire.decode_datagram does not take")
             t = fields.ticks * time_scale
             mag = fields.mag.copy()
-            usable = fields.mag_fresh & (mag != 0.0).any(axis=1) & (np.abs(mag) <= MAX_MAG).all(1)
+            usable = fields.mag_fresh & usable_mag(tuple(mag.T))
             mag[~usable] = math.nan
             clock.lap("decode")
             series = estimator.update_batch(t, fields.gyro, fields.accel, mag)

@@ -75,11 +75,32 @@ class GpsAcceleration:
 
     def at(self, t: float) -> tuple[float, float, float] | None:
         """The acceleration to use for an IMU sample at t, or None (unknown)."""
-        if self.accel is None or not 0.0 <= t - self.fix_t <= GPS_FIX_MAX_AGE:
-            return None
-        if not 0.0 <= t - self.accel_t <= GPS_MAX_AGE:
+        if self.accel is None or not gps_fresh(t, self.accel_t, self.fix_t):
             return None
         return self.accel
+
+
+# The freshness rules, written once for one sample's time (a number) and for a block's
+# (arrays): the element-wise operators give a bool on numbers and a mask on arrays.
+
+
+def gps_fresh(t: Any, accel_t: Any, fix_t: Any) -> Any:
+    """Whether a GPS acceleration formed at ``accel_t``, the last 3-D fix reported at
+    ``fix_t``, is used for an IMU sample at ``t`` (all vehicle time)."""
+    since_fix = t - fix_t
+    since_accel = t - accel_t
+    return (
+        (since_fix >= 0.0)
+        & (since_fix <= GPS_FIX_MAX_AGE)
+        & (since_accel >= 0.0)
+        & (since_accel <= GPS_MAX_AGE)
+    )
+
+
+def airspeed_fresh(t: Any, airspeed_t: Any) -> Any:
+    """Whether an airspeed reported at ``airspeed_t`` is used for an IMU sample at ``t``."""
+    since = t - airspeed_t
+    return (since >= 0.0) & (since <= AIRSPEED_MAX_AGE)
 
 
 def gps_acceleration_at(
@@ -88,16 +109,8 @@ def gps_acceleration_at(
     """:meth:`GpsAcceleration.at` for many samples, each with the state it meets
     (the replay's fast path): ``accel`` (n, 3), NaN rows where there is none yet,
     ``accel_t`` and ``fix_t`` per sample; (n, 3), NaN rows where it is unknown.
-    The same rule, written for arrays."""
-    since_fix = t - fix_t
-    since_accel = t - accel_t
-    fresh = (
-        (since_fix >= 0.0)
-        & (since_fix <= GPS_FIX_MAX_AGE)
-        & (since_accel >= 0.0)
-        & (since_accel <= GPS_MAX_AGE)
-    )
-    return np.where(fresh[:, None], accel, math.nan)
+    The same rule (:func:`gps_fresh`)."""
+    return np.where(gps_fresh(t, accel_t, fix_t)[:, None], accel, math.nan)
 
 
 def without_centripetal(

@@ -58,15 +58,12 @@ from mavest.mavlink.messages import (
     time_boot_ms_many,
 )
 from mavest.mavlink.tlog import TlogWriter
-from mavest.service.aiding import AIRSPEED_MAX_AGE, gps_acceleration_at
+from mavest.service.aiding import airspeed_fresh, gps_acceleration_at
 from mavest.service.pipeline import (
     HEADING_EVENTS,
     HEALTH_EVENTS,
     MAG_NOT_TAKEN,
     MAG_WAIT,
-    MAX_ACCEL,
-    MAX_GYRO,
-    MAX_MAG,
     Pipeline,
     Stream,
     Vehicle,
@@ -78,6 +75,8 @@ from mavest.service.pipeline import (
     report_heading,
     report_health,
     report_realigned,
+    usable_mag,
+    valid_sample,
 )
 
 # What a record is to the pipeline (by message id).
@@ -481,13 +480,7 @@ class BulkFeed:
         alone if it is not plain. Returns where the next run starts."""
         began = time.perf_counter()
         gyro, accel = decoded.gyro[rows], decoded.accel[rows]
-        # as the pipeline checks each sample (written to fail on NaN too)
-        valid = (
-            _every_axis(np.abs(gyro) <= MAX_GYRO)
-            & _every_axis(np.abs(accel) <= MAX_ACCEL)
-            & ~decoded.saturated[rows]
-            & _any_axis(accel != 0.0)
-        )
+        valid = valid_sample(tuple(gyro.T), tuple(accel.T), decoded.saturated[rows])
         plain = int(np.argmin(valid)) if not valid.all() else rows.shape[0]
         tick = float(decoded.tick[rows[0]])
         ticks = decoded.ticks[rows[:plain]]
@@ -501,12 +494,8 @@ class BulkFeed:
             self._alone(records, first)
             return first + 1
         mag = decoded.mag[rows[:count]]
-        usable_mag = (
-            decoded.mag_fresh[rows[:count]]
-            & _any_axis(mag != 0.0)
-            & _every_axis(np.abs(mag) <= MAX_MAG)
-        )
-        mag[~usable_mag] = math.nan
+        mag_usable = decoded.mag_fresh[rows[:count]] & usable_mag(tuple(mag.T))
+        mag[~mag_usable] = math.nan
         # The batch in parts, each run on the filter's thread while this one takes the
         # part before (the compiled filter does not hold the interpreter). Exact: the
         # parts run in order, as consecutive batches would, on inputs all decided
@@ -538,7 +527,7 @@ class BulkFeed:
             steps = _Steps(
                 rows[first:done],
                 series,
-                usable_mag[first:done],
+                mag_usable[first:done],
                 gyro[first:done],
                 accel[first:done],
                 processing,
@@ -645,9 +634,9 @@ class BulkFeed:
                     history.accel[met], history.accel_t[met], history.fix_t[met], t[window]
                 )
             if airspeed_aiding:
-                since = t[window] - history.airspeed_t[met]
                 unknown = np.isnan(linear_accel[window, 0])
-                needs_airspeed[window] = unknown & (since >= 0.0) & (since <= AIRSPEED_MAX_AGE)
+                fresh = airspeed_fresh(t[window], history.airspeed_t[met])
+                needs_airspeed[window] = unknown & fresh
                 if needs_airspeed[window].any():
                     return linear_accel[: window.stop], needs_airspeed[: window.stop]
             decided, followed = window.stop, upto
@@ -1054,17 +1043,6 @@ class BulkFeed:
         pipeline.sent += sent
         stream.stats.answered += answered.shape[0]
         return packets
-
-
-def _every_axis(mask: np.ndarray) -> np.ndarray:
-    """Per row of an (n, 3) mask, whether all three are set (``mask.all(axis=1)``, which
-    NumPy reduces five times slower along so short an axis)."""
-    return mask[:, 0] & mask[:, 1] & mask[:, 2]
-
-
-def _any_axis(mask: np.ndarray) -> np.ndarray:
-    """Per row of an (n, 3) mask, whether any is set (``mask.any(axis=1)``)."""
-    return mask[:, 0] | mask[:, 1] | mask[:, 2]
 
 
 def _distinct(values: np.ndarray) -> list[int]:

@@ -44,7 +44,7 @@ from mavest.mavlink.messages import (
 )
 from mavest.mavlink.signing import Signing, Verifier
 from mavest.mavlink.tlog import TlogWriter
-from mavest.service.aiding import AIRSPEED_MAX_AGE, GpsAcceleration, without_centripetal
+from mavest.service.aiding import GpsAcceleration, airspeed_fresh, without_centripetal
 from mavest.service.config import ServiceConfig
 from mavest.service.smoothing import RecordedComparison, RecordedInputs
 
@@ -470,12 +470,7 @@ class Pipeline:
         stats.received += 1
         gyro, accel = sample.gyro, sample.accel
         # before the clock: a rejected sample's timestamp is not believed either
-        if (
-            not _plausible(gyro, MAX_GYRO)
-            or not _plausible(accel, MAX_ACCEL)
-            or sample.saturated
-            or accel == (0.0, 0.0, 0.0)
-        ):
+        if not valid_sample(gyro, accel, sample.saturated):
             reject_sample(stream, _rejection_reason(sample))
             if sample.gyro_saturated:  # the rotation it missed is unknown
                 stream.estimator.gyro_clipped()
@@ -532,7 +527,7 @@ class Pipeline:
         stats = stream.stats
         gyro, accel = sample.gyro, sample.accel
         vehicle = self.vehicles[(sample.stream.system, sample.stream.component)]
-        mag = _usable_mag(sample.mag)
+        mag = sample.mag if sample.mag is not None and usable_mag(sample.mag) else None
         linear_accel = self._gps_acceleration(stream, vehicle, t)
         airspeed_aided = linear_accel is None and self._uses_airspeed(vehicle, t)
         if airspeed_aided:
@@ -625,7 +620,7 @@ class Pipeline:
         return not (mode in ("off", "gps") or (mode == "auto" and not vehicle.fixed_wing))
 
     def _uses_airspeed(self, vehicle: Vehicle, t: float) -> bool:
-        return self.airspeed_aiding(vehicle) and 0.0 <= t - vehicle.airspeed_t <= AIRSPEED_MAX_AGE
+        return self.airspeed_aiding(vehicle) and airspeed_fresh(t, vehicle.airspeed_t)
 
     def _answer(
         self,
@@ -922,13 +917,6 @@ HEADING_EVENTS = (
 )
 
 
-def _usable_mag(mag: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
-    """The magnetometer reading, or None: absent, all zero (no compass fitted), absurd."""
-    if mag is None or mag == (0.0, 0.0, 0.0) or not _plausible(mag, MAX_MAG):
-        return None
-    return mag
-
-
 # the magnetometer readings the filter did not take (the rest it took: a magnetometer update
 # looked at them)
 MAG_NOT_TAKEN = StepFlags.MAG_BETWEEN_UPDATES | StepFlags.MAG_SET_ASIDE
@@ -1034,9 +1022,37 @@ def reject_sample(stream: Stream, reason: str) -> None:
         )
 
 
-def _plausible(v: tuple[float, float, float], limit: float) -> bool:
-    # written out: a NaN fails every comparison, so it is caught here too
-    return -limit <= v[0] <= limit and -limit <= v[1] <= limit and -limit <= v[2] <= limit
+# The sample rules, written once for one sample (an axis: a number) and for a block of
+# them (an axis: a column), so that the live path and the replay's blocks decide alike:
+# the element-wise operators give a bool on numbers and a mask on columns.
+Axes = tuple[Any, Any, Any]
+
+
+def within(axes: Axes, limit: float) -> Any:
+    """Whether every axis is within ±``limit`` (a NaN fails every comparison: it is not)."""
+    x, y, z = axes
+    return (abs(x) <= limit) & (abs(y) <= limit) & (abs(z) <= limit)
+
+
+def reads_something(axes: Axes) -> Any:
+    """Whether any axis is not zero: no real sensor reads exactly nothing on three axes
+    (noise alone moves it), so all zero is an empty field, not a measurement."""
+    x, y, z = axes
+    return (x != 0.0) | (y != 0.0) | (z != 0.0)
+
+
+def valid_sample(gyro: Axes, accel: Axes, saturated: Any) -> Any:
+    """Whether an IMU sample is one to estimate from: both sensors within any sensor's
+    range, neither at its integer field's limit, an accelerometer that reads something."""
+    not_saturated = saturated ^ True  # (``not``, for a bool and for a mask alike)
+    return (
+        within(gyro, MAX_GYRO) & within(accel, MAX_ACCEL) & not_saturated & reads_something(accel)
+    )
+
+
+def usable_mag(mag: Axes) -> Any:
+    """Whether a magnetometer reading is used: not all zero (no compass fitted), not absurd."""
+    return reads_something(mag) & within(mag, MAX_MAG)
 
 
 def _who(vehicle: Vehicle) -> str:
