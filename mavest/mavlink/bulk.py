@@ -35,6 +35,8 @@ from mavest.mavlink.messages import (
     HIGHRES_MAG_BITS,
     IMU_FORMATS,
     SCALED_IMU_INSTANCE,
+    all_fresh,
+    at_limit,
     mavlink2,
 )
 
@@ -124,22 +126,21 @@ def imu_fields(name: str, payloads: np.ndarray) -> ImuFields:
     fmt = IMU_FORMATS[name]
     n = payloads.shape[0]
 
-    def axes(sensor: str, scale: float) -> np.ndarray:
-        raw = np.stack([payloads[f"{axis}{sensor}"] for axis in "xyz"], axis=1)
-        return raw.astype(np.float64) * scale
+    def columns(sensor: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        x, y, z = (payloads[f"{axis}{sensor}"] for axis in "xyz")
+        return x, y, z
 
-    raw_inertial = [payloads[f"{axis}{sensor}"] for axis in "xyz" for sensor in ("gyro", "acc")]
+    def axes(sensor: str, scale: float) -> np.ndarray:
+        return np.stack(columns(sensor), axis=1).astype(np.float64) * scale
+
     if fmt.limits is not None:
-        low, high = fmt.limits
-        saturated = np.zeros(n, dtype=bool)
-        for values in raw_inertial:
-            saturated |= (values <= low) | (values >= high)
+        saturated = at_limit(columns("gyro"), fmt.limits) | at_limit(columns("acc"), fmt.limits)
     else:
         saturated = np.zeros(n, dtype=bool)
     if name == "HIGHRES_IMU":
         updated = payloads["fields_updated"].astype(np.int64)
-        inertial_fresh = updated & HIGHRES_INERTIAL_BITS == HIGHRES_INERTIAL_BITS
-        mag_fresh = updated & HIGHRES_MAG_BITS == HIGHRES_MAG_BITS
+        inertial_fresh = all_fresh(updated, HIGHRES_INERTIAL_BITS)
+        mag_fresh = all_fresh(updated, HIGHRES_MAG_BITS)
         instance = payloads["id"].astype(np.int64)
     else:
         inertial_fresh = np.ones(n, dtype=bool)

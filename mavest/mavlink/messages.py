@@ -67,6 +67,24 @@ HIGHRES_MAG_BITS = (
 )
 
 
+# The message rules below are written once for one message (numbers) and for a block of
+# them (columns, mavest.mavlink.bulk.imu_fields): the element-wise operators give a bool
+# on numbers and a mask on columns.
+
+
+def all_fresh(updated: Any, bits: int) -> Any:
+    """Whether HIGHRES_IMU's ``fields_updated`` has every one of ``bits`` set."""
+    return updated & bits == bits
+
+
+def at_limit(axes: tuple[Any, Any, Any], limits: tuple[int, int]) -> Any:
+    """Whether any of a sensor's three integer fields is at its type's limit: the sensor
+    (or the firmware's clip) saturated, and the value is not a measurement."""
+    low, high = limits
+    x, y, z = axes
+    return (x <= low) | (x >= high) | (y <= low) | (y >= high) | (z <= low) | (z >= high)
+
+
 # The range of the integer field types IMU values come in: a value at either end is a
 # reading the sensor (or the firmware's conversion) clipped, not a measurement.
 _INTEGER_LIMITS = {
@@ -168,9 +186,9 @@ def decode_imu(message: Any) -> ImuSample | None:
     mag_fresh = True
     if name == "HIGHRES_IMU":
         updated = message.fields_updated
-        if updated & HIGHRES_INERTIAL_BITS != HIGHRES_INERTIAL_BITS:
+        if not all_fresh(updated, HIGHRES_INERTIAL_BITS):
             return None
-        mag_fresh = updated & HIGHRES_MAG_BITS == HIGHRES_MAG_BITS
+        mag_fresh = all_fresh(updated, HIGHRES_MAG_BITS)
         instance = message.id
     elif name == "RAW_IMU":
         instance = message.id  # a MAVLink 2 extension: 0 when sent as MAVLink 1
@@ -180,12 +198,8 @@ def decode_imu(message: Any) -> ImuSample | None:
     gx, gy, gz = message.xgyro, message.ygyro, message.zgyro
     ax, ay, az = message.xacc, message.yacc, message.zacc
     limits = fmt.limits
-    gyro_saturated = limits is not None and (
-        min(gx, gy, gz) <= limits[0] or max(gx, gy, gz) >= limits[1]
-    )
-    accel_saturated = limits is not None and (
-        min(ax, ay, az) <= limits[0] or max(ax, ay, az) >= limits[1]
-    )
+    gyro_saturated = limits is not None and at_limit((gx, gy, gz), limits)
+    accel_saturated = limits is not None and at_limit((ax, ay, az), limits)
     return ImuSample(
         StreamKey(header.srcSystem, header.srcComponent, name, instance),
         getattr(message, fmt.time_field),
