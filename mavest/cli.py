@@ -28,6 +28,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn, Protocol
@@ -36,7 +37,7 @@ import numpy as np
 from numba.core import event as numba_event
 
 from mavest import __version__
-from mavest.estimator import ConfigError, estimate
+from mavest.estimator import AccelUnitWarning, ConfigError, estimate
 from mavest.mavlink.links import LinkError
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import KEY_ENVIRONMENT_VARIABLE, Signing
@@ -162,6 +163,9 @@ def _setup_logging(args: argparse.Namespace) -> None:
     root = logging.getLogger("mavest")
     root.handlers[:] = [handler]
     root.setLevel(level)
+    # The service says this itself, one line a stream (pipeline.report_accel_unit);
+    # Python's own warning would add a second with a source line in it.
+    warnings.simplefilter("ignore", AccelUnitWarning)
     root.propagate = False
 
 

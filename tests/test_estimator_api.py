@@ -14,7 +14,7 @@ import pytest
 
 import mavest
 from mavest import ConfigError, Estimator, EstimatorConfig, StepFlags, estimate
-from mavest.estimator import InputError
+from mavest.estimator import AccelUnitWarning, InputError
 from mavest.evaluation.consistency import SCENARIOS, chi2_band, monte_carlo, simulate_scenario
 from mavest.evaluation.metrics import rmse_deg
 from mavest.sim import Motion, simulate
@@ -450,10 +450,12 @@ def test_an_accelerometer_in_another_unit_is_named(
     assert issubclass(InputError, ValueError)
     for batch_fed in (False, True):
         est = Estimator(batch_fed=batch_fed)
-        with pytest.warns(UserWarning, match=rf"norm ≈ \S+: looks like {unit}") as caught:
+        assert est.accel_unit_problem is None
+        with pytest.warns(AccelUnitWarning, match=rf"norm ≈ \S+: looks like {unit}") as caught:
             online = _online_series(est, data.t, data.gyro, accel)
         assert len(caught) == 1  # once
         assert caught[0].filename == __file__  # where update was called
+        assert est.accel_unit_problem == str(caught[0].message)
         flagged = np.array([e.flags & StepFlags.ACCEL_WRONG_UNIT != 0 for e in online])
         assert flagged[-1] and flagged.mean() > 0.8
         assert all(e.flags & StepFlags.NOT_INITIALISED for e in online)

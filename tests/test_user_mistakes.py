@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 import mavest.service.runners as runners
 from mavest.cli import COMPILING, EXIT_INTERRUPTED, EXIT_NO_IMU, main
+from mavest.estimator import AccelUnitWarning
 from mavest.mavlink.links import LinkError, make_link, parse_endpoint
 from mavest.paths import OutputPathError, check_outputs
 from mavest.service.config import ServiceConfig
@@ -585,3 +587,40 @@ def test_a_missing_simulator_names_the_extra(
     assert main(argv) == 2
     _one_line(capsys.readouterr().err, "pip install 'mavest[sim]'")
     assert not (tmp_path / "f.tlog").exists()
+
+
+def _tlog_at_rest_in_g(path: Path, seconds: float = 3.0, rate: float = 200.0) -> None:
+    """A vehicle at rest whose HIGHRES_IMU accelerometer is in g, not m/s²."""
+    rng = np.random.default_rng(1)
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    records = [(0, mav.heartbeat_encode(2, 3, 0, 0, 4).pack(mav))]
+    for k in range(int(seconds * rate)):
+        usec = 10_000_000 + round(k * 1e6 / rate)
+        gyro = rng.normal(0.0, 0.002, 3)
+        accel = np.array([0.01, -0.02, -1.0]) + rng.normal(0.0, 0.002, 3)
+        message = mav.highres_imu_encode(
+            usec, *accel, *gyro, 0.2, 0.0, 0.4, 1013.0, 0.0, 0.0, 20.0, 0x3F | 0x1C0, 0
+        )
+        records.append((usec, message.pack(mav)))
+    path.write_bytes(b"".join(t.to_bytes(8, "big") + packet for t, packet in records))
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_an_accelerometer_in_g_is_one_line_and_counted(
+    tmp_path: Path, fast: bool, mavest_log: _Lines
+) -> None:
+    """Both replay paths say it once, name the unit and the factor, and count the
+    samples; no Python warning on top."""
+    log = tmp_path / "in_g.tlog"
+    _tlog_at_rest_in_g(log)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warnings.simplefilter("ignore", AccelUnitWarning)  # (as the command line does)
+        report = asyncio.run(replay(log, ServiceConfig(), Outputs(), progress=False, fast=fast))
+    assert not [w for w in caught if issubclass(w.category, UserWarning)]
+    said = [line for line in mavest_log.lines if "looks like g" in line]
+    assert len(said) == 1 and "multiply by 9.80665" in said[0], mavest_log.text()
+    (stream,) = report.pipeline.streams.values()
+    assert 0 < stream.stats.accel_wrong_unit <= stream.stats.received == 600
+    assert not stream.estimator.initialised
+    assert f"{stream.stats.accel_wrong_unit} samples not estimated" in report.summary()

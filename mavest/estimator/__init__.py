@@ -9,9 +9,11 @@ from mavest.estimator.estimator import (
     estimate,
 )
 from mavest.estimator.layout import StepFlags
+from mavest.estimator.online import AccelUnitWarning
 from mavest.estimator.smoother import smooth
 
 __all__ = [
+    "AccelUnitWarning",
     "ConfigError",
     "Estimate",
     "EstimateSeries",

@@ -317,6 +317,15 @@ class Estimator:
         return self._state["P"][0, :N_ERROR, :N_ERROR].copy()
 
     @property
+    def accel_unit_problem(self) -> str | None:
+        """What the filter found of the accelerometer's unit, in one line, if it reads g
+        in another unit than m/s² (the samples flagged ``StepFlags.ACCEL_WRONG_UNIT``,
+        on which it does not start); None while it has found nothing wrong."""
+        if self._state["accel_unit"][0] <= 0:
+            return None
+        return online.accel_unit_message(self._state)
+
+    @property
     def samples(self) -> int:
         """Samples taken so far (skipped ones not counted)."""
         return int(self._state["samples"][0])

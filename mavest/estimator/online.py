@@ -69,6 +69,12 @@ UNKNOWN3 = (math.nan, math.nan, math.nan)  # no magnetometer, no known accelerat
 ACCEL_WRONG_UNIT = StepFlags.ACCEL_WRONG_UNIT
 
 
+class AccelUnitWarning(UserWarning):
+    """The accelerometer reads g in another unit than m/s² (StepFlags.ACCEL_WRONG_UNIT):
+    the filter does not start on it. A caller that says so itself (the service, once per
+    stream) filters this category out."""
+
+
 def accel_unit_message(state: np.ndarray) -> str:
     """What the step found of a state's accelerometer unit (StepFlags.ACCEL_WRONG_UNIT),
     in one line."""
@@ -89,7 +95,7 @@ def warn_accel_unit(state: np.ndarray, stacklevel: int) -> None:
     if state["unit_warned"][0]:
         return
     state["unit_warned"] = 1
-    warnings.warn(accel_unit_message(state), UserWarning, stacklevel=stacklevel + 1)
+    warnings.warn(accel_unit_message(state), AccelUnitWarning, stacklevel=stacklevel + 1)
 
 
 def vector3(value: ArrayLike, name: str) -> np.ndarray:

@@ -72,6 +72,7 @@ from mavest.service.pipeline import (
     is_fixed_wing,
     next_output_after,
     reject_sample,
+    report_accel_unit,
     report_heading,
     report_health,
     report_realigned,
@@ -924,6 +925,10 @@ class BulkFeed:
         stats.received += flags.shape[0]
         skipped = (flags & StepFlags.SKIPPED) != 0
         kept = np.flatnonzero(~skipped)
+        # (only before the filter starts, so before any other news of the stream)
+        wrong_unit = int(np.count_nonzero(flags[kept] & StepFlags.ACCEL_WRONG_UNIT))
+        if wrong_unit:
+            report_accel_unit(stream, wrong_unit)
         # the rare samples that are news, in order, with the counters as they stood
         notable = skipped | ((flags & (StepFlags.GAP_REALIGNED | HEALTH_EVENTS)) != 0)
         notable |= (flags & HEADING_EVENTS) != 0

@@ -107,6 +107,8 @@ class StreamStats:
     diverged: int = 0  # contradicted again soon after that: re-initialised
     unhealthy: int = 0  # the state failed its health check: re-initialised
     clip_realigned: int = 0  # calm again after a clipped gyro: tilt re-aligned
+    # samples the filter did not start on: the accelerometer reads g in another unit
+    accel_wrong_unit: int = 0
     reboots: int = 0
     wraps: int = 0
     mag_usable: int = 0  # samples estimated with a usable magnetometer reading
@@ -549,6 +551,8 @@ class Pipeline:
             report_realigned(stream, t)
         if flags & HEALTH_EVENTS:
             report_health(stream, flags, t)
+        if flags & StepFlags.ACCEL_WRONG_UNIT:
+            report_accel_unit(stream, 1)
         stats.estimated += 1
         if stats.first_t is None:
             stats.first_t = t
@@ -960,6 +964,19 @@ def report_health(stream: Stream, flags: int, t: float) -> None:
             "not positive definite or out of bounds): re-initialised from this sample",
             *(stream.key, t),
         )
+
+
+def report_accel_unit(stream: Stream, samples: int) -> None:
+    """Count samples the filter did not start on because the accelerometer reads g in
+    another unit than m/s²; the first time, say so (what unit, and the factor)."""
+    stats = stream.stats
+    if not stats.accel_wrong_unit:
+        log.warning(
+            "%s: %s: no attitude until it reads m/s²",
+            stream.key,
+            stream.estimator.accel_unit_problem,
+        )
+    stats.accel_wrong_unit += samples
 
 
 def report_realigned(stream: Stream, t: float) -> None:

@@ -877,6 +877,9 @@ def format_summary(report: RunReport) -> str:
             )
         )
         lines.append("    filter health: " + (", ".join(health) if health else "no resets"))
+        if stats.accel_wrong_unit:
+            problem = stream.estimator.accel_unit_problem or "accelerometer not in m/s²"
+            lines.append(f"    {stats.accel_wrong_unit} samples not estimated: {problem}")
         if stats.mag_taken:
             used = 100.0 * stats.mag_used / stats.mag_taken
             lines.append(
