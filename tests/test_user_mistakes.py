@@ -609,8 +609,8 @@ def _tlog_at_rest_in_g(path: Path, seconds: float = 3.0, rate: float = 200.0) ->
 def test_an_accelerometer_in_g_is_one_line_and_counted(
     tmp_path: Path, fast: bool, mavest_log: _Lines
 ) -> None:
-    """Both replay paths say it once, name the unit and the factor, and count the
-    samples; no Python warning on top."""
+    """Both replay paths say it once, name the unit and the factor, count the samples
+    and answer nothing; no Python warning on top."""
     log = tmp_path / "in_g.tlog"
     _tlog_at_rest_in_g(log)
     with warnings.catch_warnings(record=True) as caught:
@@ -624,3 +624,5 @@ def test_an_accelerometer_in_g_is_one_line_and_counted(
     assert 0 < stream.stats.accel_wrong_unit <= stream.stats.received == 600
     assert not stream.estimator.initialised
     assert f"{stream.stats.accel_wrong_unit} samples not estimated" in report.summary()
+    # no attitude, so none said to the vehicle (not the level one the filter starts from)
+    assert stream.stats.answered == 0

@@ -67,10 +67,11 @@ from mavest.service.pipeline import (
     Pipeline,
     Stream,
     Vehicle,
+    answerable,
+    answers_due,
     autopilot_restarted,
     autopilot_time,
     is_fixed_wing,
-    next_output_after,
     reject_sample,
     report_accel_unit,
     report_heading,
@@ -707,7 +708,10 @@ class BulkFeed:
         pipeline.messages_in += attitudes.shape[0]
         answered = np.empty(0, dtype=np.int64)  # indices of the steps answered
         if stream is not None and steps is not None and stream.primary and kept is not None:
-            answered = kept[self._answered(stream, steps.t[kept])]
+            with_attitude = kept[answerable(steps.flags[kept])]
+            rate = self.pipeline.config.output.attitude_rate
+            due, stream.next_output = answers_due(steps.t[with_attitude], stream.next_output, rate)
+            answered = with_attitude[due]
         answered_rows = steps.rows[answered] if steps is not None else answered
         # Written in pieces, each up to a record after which a HEARTBEAT of ours goes
         # out: its packets take the encoder's sequence numbers between the answers.
@@ -1007,20 +1011,6 @@ class BulkFeed:
         truth_t = np.empty(truth_rows.shape[0])
         truth_t[sort[sort >= t.shape[0]] - t.shape[0]] = times[kinds == REFERENCE]
         return truth_t
-
-    def _answered(self, stream: Stream, t: np.ndarray) -> np.ndarray:
-        """Which of these estimates the pipeline answers (``output.attitude_rate``)."""
-        rate = self.pipeline.config.output.attitude_rate
-        if rate <= 0.0:
-            return np.arange(t.shape[0])
-        chosen = []
-        next_output = stream.next_output
-        for i, ti in enumerate(t.tolist()):
-            if ti >= next_output:
-                chosen.append(i)
-                next_output = next_output_after(next_output, ti, rate)
-        stream.next_output = next_output
-        return np.array(chosen, dtype=np.int64)
 
     def _answers(
         self, records: framing.RecordIndex, stream: Stream, steps: _Steps, answered: np.ndarray

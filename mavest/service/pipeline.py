@@ -24,6 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numpy as np
+
 from mavest.estimator import Estimator
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.online import EulerComparison
@@ -573,8 +575,11 @@ class Pipeline:
             processing = time.perf_counter() - start
             for sink in self.sinks:
                 sink.on_estimate(stream, sample, estimate, euler_tuple, self.record_us, processing)
-        if stream.primary and t >= stream.next_output:
-            self._answer(stream, t, estimate, euler_tuple, gyro, sample.mavlink1)
+        if stream.primary and answerable(flags):
+            rate = self.config.output.attitude_rate
+            due, stream.next_output = answers_due((t,), stream.next_output, rate)
+            if due.shape[0]:
+                self._answer(stream, t, estimate, euler_tuple, gyro, sample.mavlink1)
 
     def _on_declination(self, system: int, component: int, declination: float) -> None:
         """A system's declination (its autopilot's COMPASS_DEC, whichever component
@@ -638,7 +643,6 @@ class Pipeline:
         """ATTITUDE (and ATTITUDE_QUATERNION) for an estimate, in the MAVLink version of
         the sample it answers."""
         output = self.config.output
-        stream.next_output = next_output_after(stream.next_output, t, output.attitude_rate)
         bias = estimate.bias
         rates = (gyro[0] - bias[0], gyro[1] - bias[1], gyro[2] - bias[2])
         encoder = self.encoder(stream.key.system)
@@ -873,6 +877,28 @@ def next_output_after(next_output: float, t: float, rate: float) -> float:
         return next_output
     period = 1.0 / rate
     return max(next_output + period, t + 0.5 * period)
+
+
+def answerable(flags: Any) -> Any:
+    """Whether an estimate is answered to the vehicle at all: only once the filter has
+    an attitude (before, it would send the level attitude it starts from as if it knew
+    it). The step's flags: a number, or an array of them."""
+    return flags & StepFlags.NOT_INITIALISED == 0
+
+
+def answers_due(t: Any, next_output: float, rate: float) -> tuple[np.ndarray, float]:
+    """Which of these answerable estimates (their times, ascending: one, or a block's)
+    are answered at ``rate`` answers a second, the next due at ``next_output``; and when
+    the next is due after them (:func:`next_output_after`, after each answer)."""
+    t = np.asarray(t, dtype=np.float64)
+    if rate <= 0.0:  # every one (the grid does not move)
+        return np.flatnonzero(t >= next_output), next_output
+    chosen = []
+    for i, ti in enumerate(t.tolist()):
+        if ti >= next_output:
+            chosen.append(i)
+            next_output = next_output_after(next_output, ti, rate)
+    return np.array(chosen, dtype=np.int64), next_output
 
 
 def autopilot_time(time_boot_ms: Any) -> Any:
