@@ -71,6 +71,7 @@ from mavest.service.pipeline import (
     answers_due,
     autopilot_restarted,
     autopilot_time,
+    heartbeats_after,
     is_fixed_wing,
     reject_sample,
     report_accel_unit,
@@ -320,16 +321,10 @@ class BulkFeed:
         HEARTBEAT of ours goes out; moves the next one's due time past them."""
         if not self._beat_period_us or not self.pipeline.vehicles:
             return []  # (a vehicle comes only with a record handled alone)
-        beats: list[int] = []
-        position = 0
-        while True:
-            due = np.flatnonzero(stamps[position:] >= self._next_beat_us)
-            if not due.shape[0]:
-                return beats
-            position += int(due[0])
-            beats.append(position)
-            self._next_beat_us = int(stamps[position]) + self._beat_period_us
-            position += 1
+        beats, self._next_beat_us = heartbeats_after(
+            stamps, self._next_beat_us, self._beat_period_us
+        )
+        return beats
 
     # ---------------------------------------------------------------- one run
 

@@ -879,6 +879,24 @@ def next_output_after(next_output: float, t: float, rate: float) -> float:
     return max(next_output + period, t + 0.5 * period)
 
 
+def heartbeats_after(stamps: Any, next_us: int, period_us: int) -> tuple[list[int], int]:
+    """Of records with these times (µs of record time, in order: one, or a block's), those
+    after which a HEARTBEAT of mavest's goes out, while a vehicle is known: the first at
+    or past ``next_us``, the next at or past one ``period_us`` after that record's time;
+    and when the next is then due."""
+    stamps = np.asarray(stamps)
+    beats: list[int] = []
+    position = 0
+    while True:
+        due = np.flatnonzero(stamps[position:] >= next_us)
+        if not due.shape[0]:
+            return beats, next_us
+        position += int(due[0])
+        beats.append(position)
+        next_us = int(stamps[position]) + period_us
+        position += 1
+
+
 def answerable(flags: Any) -> Any:
     """Whether an estimate is answered to the vehicle at all: only once the filter has
     an attitude (before, it would send the level attitude it starts from as if it knew

@@ -39,7 +39,7 @@ from mavest.paths import check_outputs
 from mavest.service import bulk
 from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import EstimatesTable, EstimatesTableError, table_format
-from mavest.service.pipeline import EstimateSink, Pipeline, Stream
+from mavest.service.pipeline import EstimateSink, Pipeline, Stream, heartbeats_after
 from mavest.service.signals import stop_on_signals
 from mavest.service.smoothing import SmoothedStream, smooth_stream
 from mavest.viz.viewer import (
@@ -549,9 +549,10 @@ def _one_record(
         tlog.write(stamp, record.packet)
     if record.message is not None:
         pipeline.on_message(record.message, stamp)
-    if period_us and stamp >= next_us and pipeline.vehicles:
-        pipeline.heartbeat()
-        next_us = stamp + period_us
+    if period_us and pipeline.vehicles:
+        beats, next_us = heartbeats_after((stamp,), next_us, period_us)
+        if beats:
+            pipeline.heartbeat()
     return next_us
 
 
