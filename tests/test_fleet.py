@@ -9,6 +9,7 @@ tlog cut off mid-packet, a text file.
 from __future__ import annotations
 
 import asyncio
+import csv
 import io
 import logging
 import math
@@ -23,6 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytest.importorskip("distributed", reason="mavest fleet needs mavest[fleet]")
@@ -135,6 +137,17 @@ def test_a_log_s_rows_are_its_replay(flights: Path, tmp_path: Path) -> None:
     theirs = tmp_path / "replay.csv"
     assert main(["replay", str(log), "--estimates", str(theirs), "-q", *SETTLE]) == 0
     assert ours.read_bytes() == theirs.read_bytes()
+    # the mean σ are the table's sigma columns' means from settle_time after the first
+    with ours.open(newline="") as file:
+        table = list(csv.DictReader(file))
+    t = np.array([float(r["time_s"]) for r in table])
+    names = [f"sigma_{angle}_deg" for angle in ("roll", "pitch", "yaw")]
+    sigma = np.array([[float(r[name]) for name in names] for r in table])
+    settled = t >= t[0] + CONFIG.input.settle_time
+    assert 0 < np.count_nonzero(settled) < t.shape[0]
+    tilt = np.hypot(sigma[settled, 0], sigma[settled, 1])
+    assert row["mean_sigma_tilt_deg"] == pytest.approx(tilt.mean(), rel=1e-12)
+    assert row["mean_sigma_heading_deg"] == pytest.approx(sigma[settled, 2].mean(), rel=1e-12)
 
 
 @pytest.mark.parametrize("name", BROKEN)

@@ -5,8 +5,8 @@
 
 Simulated flights (``--seconds`` long, the IMU at ``--rate`` Hz, with the truth) are
 written to a temporary folder, then replayed three ways, each log as the fleet
-replays it (:func:`mavest.fleet.rows.log_rows`: the replay, its estimates table,
-its row):
+replays it (:func:`mavest.fleet.rows.log_rows`: the replay, its streams' mean σ, its
+row):
 
 * a plain loop in this process, one log after the other;
 * a LocalCluster of 1 worker process, then of 2 (``Client.map``, as ``mavest fleet``).

@@ -27,12 +27,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mavest.mavlink.messages import mavlink2
+import numpy as np
+
+from mavest.mavlink.messages import StreamKey, mavlink2
 from mavest.mavlink.tlog import TlogError
 from mavest.onboard import OnboardLogError
 from mavest.paths import OutputPathError, partial_path
 from mavest.service.config import ServiceConfig
+from mavest.service.pipeline import Stream
 from mavest.service.runners import Outputs, RunReport, replay
+from mavest.so3 import euler_sigmas
 from mavest.viz.viewer import ViewerError
 
 log = logging.getLogger("mavest")
@@ -137,7 +141,7 @@ def error_row(source: str, message: str) -> dict[str, Any]:
 def warm_up() -> None:
     """Load (or compile, the first time on a machine) everything a log's replay runs in
     this process — the filter's kernels, the replay's decoder and bulk path, the
-    estimates table's writer and reader — by replaying a small log made here (2 s of
+    σ of its estimates — by replaying a small log made here (2 s of
     RAW_IMU at rest), so the first log of a worker does not pay it in its own time.
 
     In a thread of its own: Dask's ``Client.run`` calls this in the worker's event
@@ -171,7 +175,7 @@ def log_rows(task: LogTask) -> list[dict[str, Any]]:
         local = Path(where)
         try:
             local = _local_copy(where, Path(scratch))
-            report, sigmas = _replay(local, task, Path(scratch))
+            report, sigmas = _replay(local, task)
         except LOG_ERRORS as error:
             # in the terms of the log as given (not its copy, or its absolute path)
             message = str(error).replace(str(local), task.source)
@@ -220,16 +224,18 @@ def _local_copy(source: str, scratch: Path) -> Path:
     return local
 
 
-def _replay(log_path: Path, task: LogTask, scratch: Path) -> tuple[RunReport, dict[tuple, Any]]:
-    """The replay, as `mavest replay LOG --rrd … --estimates …`, and each stream's mean σ
-    (from the estimates table: the task's, or one in ``scratch``)."""
-    estimates = Path(task.estimates) if task.estimates else scratch / "estimates.parquet"
+def _replay(log_path: Path, task: LogTask) -> tuple[RunReport, SigmaMeans]:
+    """The replay, as `mavest replay LOG --rrd … --estimates …`, and each stream's mean σ."""
+    estimates = Path(task.estimates) if task.estimates else None
     rrd = Path(task.rrd) if task.rrd else None
     # the recording appears whole or not at all (the estimates table does by itself)
     rrd_partial = partial_path(rrd) if rrd is not None else None
     outputs = Outputs(rrd=rrd_partial, estimates=estimates)
+    sigmas = SigmaMeans(task.config.input.settle_time)
     try:
-        report = asyncio.run(replay(log_path, task.config, outputs, progress=False))
+        report = asyncio.run(
+            replay(log_path, task.config, outputs, progress=False, sinks=(sigmas,))
+        )
         if rrd is not None and rrd_partial is not None:
             os.replace(rrd_partial, rrd)
     finally:
@@ -237,50 +243,108 @@ def _replay(log_path: Path, task: LogTask, scratch: Path) -> tuple[RunReport, di
             rrd_partial.unlink(missing_ok=True)
     for path, error in report.output_errors.items():
         log.warning("%s stopped early: %s", rrd if path == rrd_partial else path, error)
-    settle = task.config.input.settle_time
-    return report, _mean_sigmas(estimates, settle) if estimates.exists() else {}
+    return report, sigmas
 
 
-def _mean_sigmas(path: Path, settle: float) -> dict[tuple, tuple[float, float]]:
-    """Per stream (system, component, message, instance): the mean tilt and heading σ
-    of its estimates ``settle`` s after its first, as its accuracy is scored."""
-    import numpy as np
+class SigmaMeans:
+    """Each stream's mean tilt and heading σ (degrees) over its estimates from ``settle``
+    s after its first, as its accuracy is scored; taken as the replay makes them (an
+    estimate sink: one at a time, or many on the fast path), so that no estimates table
+    need be written and read back for them. Tilt σ is the root sum square of the roll
+    and pitch σ, heading σ the yaw's, as the estimates table has them
+    (:func:`mavest.so3.euler_sigmas`); one that is not finite (at ±90° pitch) is left out.
+    """
 
-    columns = ["system", "component", "message", "instance", "time_s"]
-    sigmas = ["sigma_roll_deg", "sigma_pitch_deg", "sigma_yaw_deg"]
-    if path.suffix.lower() == ".parquet":
-        import pyarrow.parquet as pq
+    def __init__(self, settle: float) -> None:
+        self.settle = settle
+        self._first_t: dict[StreamKey, float] = {}
+        # per stream: the tilt σ sum, its count, the heading σ sum, its count
+        self._sums: dict[StreamKey, list[float]] = {}
+        # per stream: its error side and the settled estimates' q and attitude covariance
+        # not yet summed (the fast path hands them over a few at a time, and σ costs
+        # most per call: summed a block at a time)
+        self._held: dict[StreamKey, tuple[str, list[np.ndarray], list[np.ndarray]]] = {}
+        self._held_rows = 0
 
-        table = pq.read_table(path, columns=columns + sigmas)
-    else:
-        import pyarrow.csv as pcsv
+    def means(self, key: StreamKey) -> tuple[float, float]:
+        """The stream's mean tilt and heading σ, degrees (NaN: none)."""
+        self._sum_held()
+        tilt, tilt_count, heading, heading_count = self._sums.get(key, (0.0, 0, 0.0, 0))
+        return (
+            tilt / tilt_count if tilt_count else math.nan,
+            heading / heading_count if heading_count else math.nan,
+        )
 
-        wanted = pcsv.ConvertOptions(include_columns=columns + sigmas)
-        table = pcsv.read_csv(path, convert_options=wanted)
-    if table.num_rows == 0:
-        return {}
-    keys = list(
-        zip(*(table.column(c).cast("string").to_pylist() for c in columns[:4]), strict=True)
-    )
-    t = table.column("time_s").to_numpy()
-    roll, pitch, yaw = (table.column(c).to_numpy() for c in sigmas)
-    tilt = np.hypot(roll, pitch)
-    result: dict[tuple, tuple[float, float]] = {}
-    order: dict[tuple, list[int]] = {}
-    for i, key in enumerate(keys):
-        order.setdefault(key, []).append(i)
-    for key, indices in order.items():
-        picked = np.asarray(indices)
-        picked = picked[t[picked] >= t[picked[0]] + settle]
-        result[key] = (_finite_mean(tilt[picked]), _finite_mean(yaw[picked]))
-    return result
+    def on_estimate(
+        self,
+        stream: Stream,
+        sample: Any,
+        estimate: Any,
+        euler: tuple[float, float, float],
+        receive_us: int,
+        processing_s: float,
+    ) -> None:
+        self._add(stream, np.array([estimate.t]), estimate.q[None], estimate.cov[None, :3, :3])
+
+    def on_estimates(
+        self,
+        stream: Stream,
+        t: np.ndarray,
+        euler: np.ndarray,
+        gyro: np.ndarray,
+        accel: np.ndarray,
+        accel_used: np.ndarray,
+        flags: np.ndarray,
+        q: np.ndarray,
+        series: Any,
+        index: np.ndarray,
+        receive_us: np.ndarray,
+        processing_s: float,
+    ) -> None:
+        """Many estimates of one stream, in order: the i-th is ``series[index[i]]``."""
+        self._add(stream, t, q, series.cov[index, :3, :3])
+
+    def on_reference(
+        self, stream: Stream, source: str, t: float, euler: tuple, receive_us: int = 0
+    ) -> None:
+        """References are not estimates: nothing."""
+
+    def on_references(
+        self, stream: Stream, source: str, t: np.ndarray, euler: np.ndarray, receive_us: Any
+    ) -> None:
+        """As :meth:`on_reference`: nothing."""
+
+    def _add(self, stream: Stream, t: np.ndarray, q: np.ndarray, cov: np.ndarray) -> None:
+        if not t.shape[0]:
+            return
+        first = self._first_t.setdefault(stream.key, float(t[0]))
+        picked = t >= first + self.settle
+        if not picked.any():
+            return
+        _, qs, covs = self._held.setdefault(stream.key, (stream.estimator.config.error, [], []))
+        qs.append(q[picked])
+        covs.append(cov[picked])
+        self._held_rows += qs[-1].shape[0]
+        if self._held_rows >= _SIGMA_BLOCK:
+            self._sum_held()
+
+    def _sum_held(self) -> None:
+        for key, (side, qs, covs) in self._held.items():
+            if not qs:
+                continue
+            sigma = np.degrees(euler_sigmas(np.concatenate(qs), np.concatenate(covs), side))
+            sums = self._sums.setdefault(key, [0.0, 0, 0.0, 0])
+            for k, values in ((0, np.hypot(sigma[:, 0], sigma[:, 1])), (2, sigma[:, 2])):
+                finite = values[np.isfinite(values)]
+                sums[k] += float(finite.sum())
+                sums[k + 1] += int(finite.shape[0])
+            qs.clear()
+            covs.clear()
+        self._held_rows = 0
 
 
-def _finite_mean(values: Any) -> float:
-    import numpy as np
-
-    finite = values[np.isfinite(values)]
-    return float(finite.mean()) if finite.shape[0] else math.nan
+# Estimates whose σ are summed at a time (about 1 MB held).
+_SIGMA_BLOCK = 8192
 
 
 def _autopilot_name(value: int) -> str:
@@ -288,7 +352,7 @@ def _autopilot_name(value: int) -> str:
     return entry.name.removeprefix("MAV_AUTOPILOT_") if entry is not None else str(value)
 
 
-def _rows(source: str, report: RunReport, sigmas: dict[tuple, Any]) -> list[dict[str, Any]]:
+def _rows(source: str, report: RunReport, sigmas: SigmaMeans) -> list[dict[str, Any]]:
     pipeline = report.pipeline
     log_columns = {
         "records": report.records,
@@ -308,10 +372,7 @@ def _rows(source: str, report: RunReport, sigmas: dict[tuple, Any]) -> list[dict
         autopilot = stream.vs_autopilot.result()
         truth = stream.vs_truth.result()
         health = (stats.tilt_reopened, stats.diverged, stats.unhealthy, stats.clip_realigned)
-        tilt_sigma, heading_sigma = sigmas.get(
-            (str(key.system), str(key.component), key.message, str(key.instance)),
-            (math.nan, math.nan),
-        )
+        tilt_sigma, heading_sigma = sigmas.means(key)
         row = empty_row(source)
         row.update(
             system=key.system,

@@ -20,7 +20,7 @@ import logging
 import math
 import sys
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
@@ -356,6 +356,7 @@ async def replay(
     fast: bool = True,
     linger: Callable[[RunReport], Awaitable[None]] | None = None,
     smooth: bool = False,
+    sinks: Sequence[EstimateSink] = (),
 ) -> RunReport:
     """Replay a log through the pipeline: a tlog, or an onboard log (DataFlash, ULog) by
     content (:class:`~mavest.mavlink.tlog.TlogError`,
@@ -369,7 +370,9 @@ async def replay(
     before the viewer is stopped (it holds the recording: the served page shows nothing
     once it goes). ``smooth``: when the whole log is replayed, each stream is smoothed
     too (:mod:`mavest.service.smoothing`): :attr:`RunReport.smoothed`, and beside the
-    online estimate in the table and the recording.
+    online estimate in the table and the recording. ``sinks``: estimate sinks of the
+    caller's beside the outputs' (with ``on_estimates`` too, or the replay goes one
+    record at a time).
     """
     outputs = outputs or Outputs()
     check_outputs({"the log being replayed": path}, outputs.paths())
@@ -377,6 +380,7 @@ async def replay(
     reader = source.reader
     opened = _Opened(outputs, smoothing=smooth)
     tlog = opened.tlog
+    opened.sinks.extend(sinks)
     pipeline = Pipeline(config, out_tlog=tlog, sinks=opened.sinks)
     pipeline.smoothing = smooth
     bar = _ReplayProgress(reader.size, enabled=progress)
