@@ -219,7 +219,7 @@ def test_heartbeats_mid_flight_are_the_same_both_ways(
     beats_alone = 0
     original = service_bulk.BulkFeed._alone
 
-    def count(self: service_bulk.BulkFeed, index: bulk.RecordIndex, row: int) -> None:
+    def count(self: service_bulk.BulkFeed, index: framing.RecordIndex, row: int) -> None:
         nonlocal beats_alone
         beats_alone += int(index.message_id[row]) == mavlink2.MAVLINK_MSG_ID_HEARTBEAT
         original(self, index, row)

@@ -125,3 +125,42 @@ def test_packed_rows_are_pymavlinks_packets() -> None:
                 framing.pack_rows(rows, message_id, 0, np.ones(3, bool), 1, 1, seqs)
         checked += 1
     assert checked > 150
+
+
+def test_rows_in_both_versions_at_once_are_each_versions_packets() -> None:
+    """A mask of MAVLink 1 rows among MAVLink 2 ones (a replay of a vehicle that changed
+    version): each row as that version's dialect packs it."""
+    from pymavlink.dialects.v10 import ardupilotmega as mavlink1
+
+    rates = (0.25, -0.5, 0.0)
+    angles = [(0.1 * k, -0.2 * k, 0.3 * k) for k in range(4)]
+    mask = np.array([True, False, True, False])
+    seqs = np.arange(250, 254)
+    payloads = []
+    expected = []
+    for k, (euler, one) in enumerate(zip(angles, mask, strict=True)):
+        dialect = mavlink1 if one else mavlink2
+        mav = dialect.MAVLink(None, srcSystem=7, srcComponent=191)
+        mav.seq = int(seqs[k]) & 0xFF
+        message = dialect.MAVLink_attitude_message(1000 + k, *euler, *rates)
+        expected.append(message.pack(mav))
+        payloads.append(mavlink2.MAVLink_attitude_message.unpacker.pack(1000 + k, *euler, *rates))
+    rows = np.frombuffer(b"".join(payloads), dtype=np.uint8).reshape(4, -1)
+    attitude = mavlink2.MAVLink_attitude_message
+    packed = framing.pack_rows(rows, attitude.id, attitude.crc_extra, mask, 7, 191, seqs)
+    assert [bytes(packed.data[i, : packed.length[i]]) for i in range(4)] == expected
+
+
+def test_the_packer_refuses_what_it_would_garble() -> None:
+    """Ids that do not fit a byte, and MAVLink 1 payloads shorter than the message's
+    (which it would read past): an error, not a wrong packet."""
+    attitude = mavlink2.MAVLink_attitude_message
+    payload = bytes(attitude.unpacker.size)
+    with pytest.raises(ValueError, match="0–255"):
+        framing.pack_one(payload, attitude.id, attitude.crc_extra, 0, 256, 1)
+    with pytest.raises(ValueError, match="0–255"):
+        framing.pack_rows(
+            np.zeros((1, 28), np.uint8), attitude.id, 0, np.zeros(1, bool), 1, -1, np.zeros(1)
+        )
+    with pytest.raises(ValueError, match="wanted"):
+        framing.pack_one(payload[:10], attitude.id, attitude.crc_extra, 0, 1, 1, mavlink1=True)

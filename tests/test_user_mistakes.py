@@ -623,6 +623,23 @@ def test_an_accelerometer_in_g_is_one_line_and_counted(
     (stream,) = report.pipeline.streams.values()
     assert 0 < stream.stats.accel_wrong_unit <= stream.stats.received == 600
     assert not stream.estimator.initialised
-    assert f"{stream.stats.accel_wrong_unit} samples not estimated" in report.summary()
+    summary = report.summary()
+    assert f"{stream.stats.accel_wrong_unit} samples with no attitude" in summary
     # no attitude, so none said to the vehicle (not the level one the filter starts from)
     assert stream.stats.answered == 0
+    assert "600 samples over 3.0 s at 200.0 Hz, 0 answered" in summary
+
+
+def test_the_command_line_says_a_wrong_unit_without_pythons_warning(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A paced replay takes the samples one at a time, as ``run`` does, where the
+    estimator warns: the command shows its own line only."""
+    log = tmp_path / "in_g.tlog"
+    _tlog_at_rest_in_g(log)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert main(["replay", str(log), "--speed", "1000", "-q"]) == 0
+    assert not [w for w in caught if issubclass(w.category, AccelUnitWarning)]
+    err = capsys.readouterr().err
+    assert err.count("looks like g") == 1 and "Warning" not in err

@@ -71,8 +71,8 @@ ACCEL_WRONG_UNIT = StepFlags.ACCEL_WRONG_UNIT
 
 class AccelUnitWarning(UserWarning):
     """The accelerometer reads g in another unit than m/s² (StepFlags.ACCEL_WRONG_UNIT):
-    the filter does not start on it. A caller that says so itself (the service, once per
-    stream) filters this category out."""
+    the filter does not start on it. The ``mavest`` command filters this category out:
+    its service says so itself, once per stream (``pipeline.report_accel_unit``)."""
 
 
 def accel_unit_message(state: np.ndarray) -> str:

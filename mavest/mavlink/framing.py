@@ -265,6 +265,22 @@ def _pack(
         out_length[i] = header + length + 2
 
 
+def _mavlink1_length(message_id: int, width: int) -> int:
+    """The MAVLink 1 payload length of a message whose payloads are ``width`` bytes
+    (KeyError: MAVLink 1 cannot carry it; ValueError: the payloads are too short, which
+    the packer would otherwise read past)."""
+    length = mavlink1_lengths()[message_id]
+    if width < length:
+        raise ValueError(f"message {message_id}: a payload of {width} bytes, {length} wanted")
+    return length
+
+
+def _check_ids(system: int, component: int) -> None:
+    """A MAVLink system and component id is one byte each (the packer would wrap it)."""
+    if not (0 <= system <= 255 and 0 <= component <= 255):
+        raise ValueError(f"system {system}, component {component}: each must be 0–255")
+
+
 class Packets(NamedTuple):
     """Packets of equal capacity, one per row, each ``length`` bytes long."""
 
@@ -287,7 +303,8 @@ def pack_rows(
     (KeyError for a message MAVLink 1 cannot carry)."""
     n, width = payloads.shape
     mavlink1 = np.ascontiguousarray(mavlink1, dtype=np.bool_)
-    mavlink1_length = mavlink1_lengths()[message_id] if mavlink1.any() else 0
+    mavlink1_length = _mavlink1_length(message_id, width) if mavlink1.any() else 0
+    _check_ids(system, component)
     out = np.empty((n, width + 12), dtype=np.uint8)
     length = np.empty(n, dtype=np.int64)
     _pack(
@@ -323,12 +340,14 @@ def pack_one(
     row = np.frombuffer(payload, dtype=np.uint8).reshape(1, -1)
     out = np.empty((1, row.shape[1] + 12), dtype=np.uint8)
     length = np.empty(1, dtype=np.int64)
+    mavlink1_length = _mavlink1_length(message_id, row.shape[1]) if mavlink1 else 0
+    _check_ids(system, component)
     _pack(
         row,
         message_id,
         crc_extra,
         _ONE_MAVLINK1 if mavlink1 else _ONE_MAVLINK2,
-        mavlink1_lengths()[message_id] if mavlink1 else 0,
+        mavlink1_length,
         system,
         component,
         np.array([seq], dtype=np.int64),

@@ -5,10 +5,11 @@ service need not push it through pymavlink's parser one byte-state at a time:
 :func:`decode_datagram` has the datagram's packets found and their CRCs checked
 by mavest's one scanner (:func:`mavest.mavlink.framing.scan_packets`, the replay's
 too) and builds the same message objects pymavlink's ``MAVLink.decode`` would
-(fields, ``_header``, ``_msgbuf``, ``_payload``, ``_crc``), for about a third
-of the CPU. It only takes what it can decode exactly as pymavlink does —
-unsigned MAVLink 1 and 2 packets of messages without array or text fields,
-with a valid CRC, filling the datagram to its last byte — and answers None for
+(fields, ``_header``, ``_msgbuf``, ``_payload``, ``_crc``): for a datagram of
+one RAW_IMU, 4.8 µs against 6.8 µs through pymavlink's ``parse_buffer``. It
+only takes what it can decode exactly as pymavlink does — unsigned MAVLink 1
+and 2 packets of messages without array or text fields, with a valid CRC,
+filling the datagram to its last byte — and answers None for
 anything else, which then goes through pymavlink's parser as before (damaged
 bytes, signing, unknown messages: its rules, its counts).
 

@@ -253,6 +253,7 @@ class _Steps:
         gyro: np.ndarray,
         accel: np.ndarray,
         processing: float,
+        accel_unit_problem: str | None,
     ) -> None:
         self.rows = rows
         self.series = series
@@ -269,6 +270,9 @@ class _Steps:
         # the usable readings the filter took (as Pipeline.on_message counts them)
         self.taken_mag = usable_mag & (series.flags & MAG_NOT_TAKEN == 0)
         self.gyro = gyro  # for the answers' rates
+        # Estimator.accel_unit_problem after the steps: read on the filter's thread, which
+        # is on to the next part by the time they are booked
+        self.accel_unit_problem = accel_unit_problem
 
 
 class BulkFeed:
@@ -445,8 +449,8 @@ class BulkFeed:
         message = self._decoded.get(row)
         if message is None:
             packet = self._packet(records, row)
-            # the scan checked the record: a one-packet "datagram" (a third of
-            # pymavlink's CPU), unless the message has arrays or text
+            # the scan checked the record: a one-packet "datagram" (the messages
+            # pymavlink's decode makes), unless the message has arrays or text
             messages = wire.decode_datagram(packet)
             message = messages[0] if messages else self._mav.decode(bytearray(packet))
             self._decoded[row] = message
@@ -508,7 +512,7 @@ class BulkFeed:
         done = 0  # samples estimated
         taken = start  # records taken
         while True:
-            series, count, cut = part.result()
+            series, count, cut, accel_unit_problem = part.result()
             first, done = done, done + count
             if stream.inputs is not None:  # kept to be smoothed (as the pipeline keeps them)
                 stream.inputs.add_many(*(x[first:done] for x in inputs), series.flags[:count])
@@ -528,6 +532,7 @@ class BulkFeed:
                 gyro[first:done],
                 accel[first:done],
                 processing,
+                accel_unit_problem,
             )
             self._take(records, decoded, taken, stop, stream, steps)
             taken = stop
@@ -562,26 +567,25 @@ class BulkFeed:
         mag: np.ndarray,
         linear_accel: np.ndarray,
         last: bool,
-    ) -> tuple[Any, int, bool]:
+    ) -> tuple[Any, int, bool, str | None]:
         """Run the estimator over the samples (the ``last`` part of a batch, or not), up
         to and including the first whose step may change what the next sample's inputs
         are (whether GPS aiding applies): (the estimates, how many, whether the batch
-        ends there)."""
+        ends there, the estimator's accelerometer-unit problem after them)."""
         estimator = stream.estimator
         before = estimator.snapshot()
         series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
         # (after the batch's last step the next inputs are decided anew anyway)
         events = np.flatnonzero(series.flags[: -1 if last else None] & _REGIME_EVENTS)
-        if not events.shape[0]:
-            return series, t.shape[0], False
-        count = int(events[0]) + 1  # the steps after it took inputs decided too early
-        if count == t.shape[0]:
-            return series, count, True
-        estimator.restore(before)
-        series = estimator.update_batch(
-            t[:count], gyro[:count], accel[:count], mag[:count], linear_accel[:count]
-        )
-        return series, count, True
+        count, cut = t.shape[0], False
+        if events.shape[0]:
+            count, cut = int(events[0]) + 1, True  # later steps took inputs decided too early
+            if count < t.shape[0]:
+                estimator.restore(before)
+                series = estimator.update_batch(
+                    t[:count], gyro[:count], accel[:count], mag[:count], linear_accel[:count]
+                )
+        return series, count, cut, estimator.accel_unit_problem
 
     def _aiding(
         self,
@@ -927,7 +931,7 @@ class BulkFeed:
         # (only before the filter starts, so before any other news of the stream)
         wrong_unit = int(np.count_nonzero(flags[kept] & StepFlags.ACCEL_WRONG_UNIT))
         if wrong_unit:
-            report_accel_unit(stream, wrong_unit)
+            report_accel_unit(stream, wrong_unit, steps.accel_unit_problem)
         # the rare samples that are news, in order, with the counters as they stood
         notable = skipped | ((flags & (StepFlags.GAP_REALIGNED | HEALTH_EVENTS)) != 0)
         notable |= (flags & HEADING_EVENTS) != 0

@@ -73,7 +73,8 @@ _NATIVE_IMU = {
 
 
 class EstimateSink(Protocol):
-    """Something that takes every estimate (the Rerun recorder, a test).
+    """Something that takes every estimate (the Rerun recorder, the estimates table, a
+    fleet log's σ means, a test).
 
     A sink that also takes them many at a time (``on_estimates``, ``on_references``:
     see :class:`~mavest.viz.recorder.RerunRecorder`) lets a replay take its fast path.
@@ -236,7 +237,7 @@ class Pipeline:
         """Bytes from a link: parse (one parser per peer) and handle each message.
 
         A UDP datagram of clean packets is decoded whole (:func:`wire.decode_datagram`:
-        the same messages, a third of the CPU); anything else goes through pymavlink's
+        the same messages, 0.7 of the CPU); anything else goes through pymavlink's
         parser. With signing, the parsers check signatures (pymavlink, with the key); a
         packet they drop comes out as BAD_DATA and is counted by the verifier, not as
         damage.
@@ -554,7 +555,7 @@ class Pipeline:
         if flags & HEALTH_EVENTS:
             report_health(stream, flags, t)
         if flags & StepFlags.ACCEL_WRONG_UNIT:
-            report_accel_unit(stream, 1)
+            report_accel_unit(stream, 1, stream.estimator.accel_unit_problem)
         stats.estimated += 1
         if stats.first_t is None:
             stats.first_t = t
@@ -577,7 +578,7 @@ class Pipeline:
                 sink.on_estimate(stream, sample, estimate, euler_tuple, self.record_us, processing)
         if stream.primary and answerable(flags):
             rate = self.config.output.attitude_rate
-            due, stream.next_output = answers_due((t,), stream.next_output, rate)
+            due, stream.next_output = answers_due(t, stream.next_output, rate)
             if due.shape[0]:
                 self._answer(stream, t, estimate, euler_tuple, gyro, sample.mavlink1)
 
@@ -884,6 +885,8 @@ def heartbeats_after(stamps: Any, next_us: int, period_us: int) -> tuple[list[in
     after which a HEARTBEAT of mavest's goes out, while a vehicle is known: the first at
     or past ``next_us``, the next at or past one ``period_us`` after that record's time;
     and when the next is then due."""
+    if isinstance(stamps, int):  # one record: no array to build
+        return ([0], stamps + period_us) if stamps >= next_us else ([], next_us)
     stamps = np.asarray(stamps)
     beats: list[int] = []
     position = 0
@@ -908,6 +911,10 @@ def answers_due(t: Any, next_output: float, rate: float) -> tuple[np.ndarray, fl
     """Which of these answerable estimates (their times, ascending: one, or a block's)
     are answered at ``rate`` answers a second, the next due at ``next_output``; and when
     the next is due after them (:func:`next_output_after`, after each answer)."""
+    if isinstance(t, float):  # one estimate (the live path): no arrays to build
+        if t >= next_output:
+            return _FIRST, next_output_after(next_output, t, rate)
+        return _NONE, next_output
     t = np.asarray(t, dtype=np.float64)
     if rate <= 0.0:  # every one (the grid does not move)
         return np.flatnonzero(t >= next_output), next_output
@@ -917,6 +924,11 @@ def answers_due(t: Any, next_output: float, rate: float) -> tuple[np.ndarray, fl
             chosen.append(i)
             next_output = next_output_after(next_output, ti, rate)
     return np.array(chosen, dtype=np.int64), next_output
+
+
+_FIRST = np.zeros(1, dtype=np.int64)
+_NONE = np.zeros(0, dtype=np.int64)
+_FIRST.flags.writeable = False
 
 
 def autopilot_time(time_boot_ms: Any) -> Any:
@@ -1010,16 +1022,13 @@ def report_health(stream: Stream, flags: int, t: float) -> None:
         )
 
 
-def report_accel_unit(stream: Stream, samples: int) -> None:
+def report_accel_unit(stream: Stream, samples: int, problem: str | None) -> None:
     """Count samples the filter did not start on because the accelerometer reads g in
-    another unit than m/s²; the first time, say so (what unit, and the factor)."""
+    another unit than m/s²; the first time, say so (``problem``: the estimator's
+    :attr:`~mavest.estimator.Estimator.accel_unit_problem`, what unit and the factor)."""
     stats = stream.stats
     if not stats.accel_wrong_unit:
-        log.warning(
-            "%s: %s: no attitude until it reads m/s²",
-            stream.key,
-            stream.estimator.accel_unit_problem,
-        )
+        log.warning("%s: %s: no attitude until it reads m/s²", stream.key, problem)
     stats.accel_wrong_unit += samples
 
 

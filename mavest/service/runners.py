@@ -28,9 +28,10 @@ from typing import TYPE_CHECKING, TextIO
 import numpy as np
 
 from mavest.estimator import Estimator
+from mavest.mavlink import wire
 from mavest.mavlink.framing import RecordIndex
 from mavest.mavlink.links import Link, make_link, parse_endpoint
-from mavest.mavlink.messages import IMU_MESSAGES, StreamKey
+from mavest.mavlink.messages import IMU_MESSAGES, Encoder, StreamKey
 from mavest.mavlink.signing import Signing
 from mavest.mavlink.tlog import TlogReader, TlogRecord, TlogWriter, message_ids
 from mavest.onboard import LogDamage, OnboardLogError, detect, load
@@ -166,7 +167,7 @@ class _Opened:
         self._recorder_period = 0.0  # s between the recorder's batches (0: every flush)
         self._recorder_flushed = 0.0  # time.monotonic() of the last one
         # the pipeline's estimate sinks: the recorder, until nothing takes the recording;
-        # the table
+        # the table; and a replay's caller's (replay's ``sinks``)
         self.sinks: list[EstimateSink] = []
         if request.wanted:
             try:
@@ -554,7 +555,7 @@ def _one_record(
     if record.message is not None:
         pipeline.on_message(record.message, stamp)
     if period_us and pipeline.vehicles:
-        beats, next_us = heartbeats_after((stamp,), next_us, period_us)
+        beats, next_us = heartbeats_after(stamp, next_us, period_us)
         if beats:
             pipeline.heartbeat()
     return next_us
@@ -649,11 +650,16 @@ def _warm_up(config: ServiceConfig) -> None:
     Building an estimator loads the filter's (or compiles them, the first time);
     the Euler angles of an estimate, which every ATTITUDE carries, come from a kernel
     loaded at its first call: ~25 ms that the first sample, and the ones queued
-    behind it, would otherwise wait.
+    behind it, would otherwise wait. So do the packet scanner and packer
+    (:mod:`mavest.mavlink.framing`) that decode the first datagram and pack the first
+    ATTITUDE.
     """
     estimator = Estimator(config.estimator)
     estimate = estimator.update(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, -9.80665))
     _ = estimate.euler
+    encoder = Encoder(config.output.system_id or 1, config.output.component_id)
+    packet = encoder.attitude(0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    wire.decode_datagram(packet)
 
 
 async def _serve(
@@ -851,9 +857,11 @@ def format_summary(report: RunReport) -> str:
     for stream in pipeline.streams.values():
         stats = stream.stats
         role = " → ATTITUDE" if stream.primary else ""
+        # (fewer than estimated at --attitude-rate, or while the filter has no attitude)
+        answered = f", {stats.answered} answered" if stream.primary else ""
         lines.append(
             f"  {stream.key}{role}: {stats.estimated} of {stats.received} samples over "
-            f"{stats.span:.1f} s at {stream.rate:.1f} Hz"
+            f"{stats.span:.1f} s at {stream.rate:.1f} Hz{answered}"
         )
         problems = _counted(
             (
@@ -884,7 +892,10 @@ def format_summary(report: RunReport) -> str:
         lines.append("    filter health: " + (", ".join(health) if health else "no resets"))
         if stats.accel_wrong_unit:
             problem = stream.estimator.accel_unit_problem or "accelerometer not in m/s²"
-            lines.append(f"    {stats.accel_wrong_unit} samples not estimated: {problem}")
+            lines.append(
+                f"    {stats.accel_wrong_unit} samples with no attitude (the filter did not "
+                f"start): {problem}"
+            )
         if stats.mag_taken:
             used = 100.0 * stats.mag_used / stats.mag_taken
             lines.append(
