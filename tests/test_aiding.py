@@ -5,7 +5,6 @@ INS); and the service's differencing of GLOBAL_POSITION_INT."""
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from mavest import Estimator
 from mavest.estimator.config import EstimatorConfig
 from mavest.estimator.layout import StepFlags
+from mavest.mavlink.messages import MAVLink
 from mavest.service.aiding import (
     AIRSPEED_MAX_AGE,
     GPS_FIX_MAX_AGE,
@@ -23,6 +23,7 @@ from mavest.service.aiding import (
     gps_acceleration_at,
     gps_fresh,
 )
+from mavest.service.pipeline import AidingFields, Vehicle
 
 G = 9.80665
 RATE = 200.0
@@ -152,21 +153,17 @@ def test_online_and_batch_agree_with_aiding() -> None:
     assert np.array_equal(online.cov, batch.cov[-1])
 
 
-def _position(t: float, v: tuple[float, float, float]) -> SimpleNamespace:
-    return SimpleNamespace(
-        time_boot_ms=round(t * 1000),
-        vx=round(v[0] * 100),
-        vy=round(v[1] * 100),
-        vz=round(v[2] * 100),
-    )
+def _position(t: float, v: tuple[float, float, float]) -> tuple[int, int, int, int]:
+    """A GLOBAL_POSITION_INT's vx, vy, vz (cm/s) and time_boot_ms."""
+    return round(v[0] * 100), round(v[1] * 100), round(v[2] * 100), round(t * 1000)
 
 
 def test_gps_acceleration_differences_velocity_reports() -> None:
     gps = GpsAcceleration()
     gps.on_fix(3, 0.0)
-    gps.on_velocity(_position(0.0, (10.0, 0.0, 0.0)), 0.0)
+    gps.on_velocity_report(*_position(0.0, (10.0, 0.0, 0.0)), 0.0)
     assert gps.at(0.05) is None  # one report: no difference yet
-    gps.on_velocity(_position(0.1, (10.5, -0.2, 0.1)), 0.1)
+    gps.on_velocity_report(*_position(0.1, (10.5, -0.2, 0.1)), 0.1)
     assert gps.at(0.15) == pytest.approx((5.0, -2.0, 1.0))
     assert gps.at(0.1 + 0.6) is None  # stale
     assert gps.at(2.5) is None  # and the fix too
@@ -175,15 +172,15 @@ def test_gps_acceleration_differences_velocity_reports() -> None:
 def test_gps_acceleration_needs_a_fix_and_sane_reports() -> None:
     gps = GpsAcceleration()
     gps.on_fix(1, 0.0)  # no fix
-    gps.on_velocity(_position(0.0, (10.0, 0.0, 0.0)), 0.0)
-    gps.on_velocity(_position(0.1, (10.5, 0.0, 0.0)), 0.1)
+    gps.on_velocity_report(*_position(0.0, (10.0, 0.0, 0.0)), 0.0)
+    gps.on_velocity_report(*_position(0.1, (10.5, 0.0, 0.0)), 0.1)
     assert gps.at(0.1) is None
     gps.on_fix(3, 0.1)
     assert gps.at(0.1) == pytest.approx((5.0, 0.0, 0.0))
-    gps.on_velocity(_position(0.2, (60.0, 0.0, 0.0)), 0.2)  # 495 m/s²: a glitch
+    gps.on_velocity_report(*_position(0.2, (60.0, 0.0, 0.0)), 0.2)  # 495 m/s²: a glitch
     assert gps.glitches == 1
     assert gps.at(0.2) == pytest.approx((5.0, 0.0, 0.0))  # the last good one
-    gps.on_velocity(_position(2.0, (60.0, 0.0, 0.0)), 2.0)  # 1.8 s apart: not differenced
+    gps.on_velocity_report(*_position(2.0, (60.0, 0.0, 0.0)), 2.0)  # 1.8 s apart: not differenced
     gps.on_fix(3, 2.0)
     assert gps.at(2.0) is None
 
@@ -230,15 +227,27 @@ def test_freshness_decides_alike_on_one_sample_and_on_arrays() -> None:
     assert airspeed_fresh(now, fix_t).tolist() == [airspeed_fresh(c[0], c[2]) for c in cases]
 
 
-def test_velocity_reports_by_field_are_velocity_messages() -> None:
-    by_message, by_field = GpsAcceleration(), GpsAcceleration()
-    for k, (t, v) in enumerate(
-        [(0.0, (10.0, 0.0, 0.0)), (0.1, (10.5, -0.2, 0.1)), (0.2, (400.0, 0, 0))]
-    ):
-        message = _position(t, v)
-        by_message.on_velocity(message, 0.1 * k)
-        by_field.on_velocity_report(
-            message.vx, message.vy, message.vz, message.time_boot_ms, 0.1 * k
-        )
-        assert by_field == by_message
-    assert by_field.glitches == 1
+def test_a_vehicle_follows_its_gps_and_airspeed_messages_by_their_fields() -> None:
+    """Pipeline and replay hand a vehicle the same fields (AidingFields, from a message
+    or from the replay's decoded columns): each message goes where it belongs, at the
+    vehicle's time, and none before it has one."""
+    mav = MAVLink(None, srcSystem=1, srcComponent=1)
+    messages = [
+        mav.gps_raw_int_encode(0, 3, 0, 0, 0, 0, 0, 0, 0, 10),
+        mav.global_position_int_encode(1000, 0, 0, 0, 0, 1000, 0, 0, 0),
+        mav.global_position_int_encode(1100, 0, 0, 0, 0, 1050, -20, 10, 0),
+        mav.vfr_hud_encode(21.5, 20.0, 90, 50, 100.0, 0.0),
+    ]
+    vehicle = Vehicle(1, 1)
+    untimed = Vehicle(1, 1)
+    expected = GpsAcceleration()
+    for k, message in enumerate(messages):
+        fields = AidingFields.of(MAVLink(None).decode(bytearray(message.pack(mav))))
+        vehicle.follow(fields, 0.1 * k)
+        untimed.follow(fields, None)
+    expected.on_fix(3, 0.0)
+    expected.on_velocity_report(1000, 0, 0, 1000, 0.1)
+    expected.on_velocity_report(1050, -20, 10, 1100, 0.2)
+    assert vehicle.gps == expected and vehicle.gps.at(0.25) == pytest.approx((5.0, -2.0, 1.0))
+    assert (vehicle.airspeed, vehicle.airspeed_t) == (21.5, pytest.approx(0.3))
+    assert untimed == Vehicle(1, 1)

@@ -49,10 +49,6 @@ class GpsAcceleration:
         if fix_type >= _FIX_3D:
             self.fix_t = t
 
-    def on_velocity(self, message: Any, t: float) -> None:
-        """A GLOBAL_POSITION_INT arriving at vehicle time t."""
-        self.on_velocity_report(message.vx, message.vy, message.vz, message.time_boot_ms, t)
-
     def on_velocity_report(self, vx: int, vy: int, vz: int, time_boot_ms: int, t: float) -> None:
         """A GLOBAL_POSITION_INT's fields (cm/s, ms: as on the wire) at vehicle time t."""
         velocity = (vx * 0.01, vy * 0.01, vz * 0.01)  # cm/s → m/s

@@ -64,6 +64,7 @@ from mavest.service.pipeline import (
     HEALTH_EVENTS,
     MAG_NOT_TAKEN,
     MAG_WAIT,
+    AidingFields,
     Pipeline,
     Stream,
     Vehicle,
@@ -1100,15 +1101,9 @@ def _follow_many(
         accel[0] = gps.accel
     accel_t[0], fix_t[0], airspeed_t[0] = gps.accel_t, gps.fix_t, vehicle.airspeed_t
     for k, message_id in enumerate(message_ids.tolist()):
-        t = times[k]
-        if t is not None:
-            if message_id == _VFR_HUD:
-                vehicle.on_airspeed(airspeed[k], t)
-            elif message_id == _GPS_RAW_INT:
-                gps.on_fix(fix_type[k], t)
-            else:
-                vx, vy, vz = velocity[k]
-                gps.on_velocity_report(vx, vy, vz, report_ms[k], t)
+        vx, vy, vz = velocity[k]
+        fields = AidingFields(message_id, fix_type[k], vx, vy, vz, report_ms[k], airspeed[k])
+        vehicle.follow(fields, times[k])
         if gps.accel is not None:
             accel[k + 1] = gps.accel
         accel_t[k + 1], fix_t[k + 1], airspeed_t[k + 1] = gps.accel_t, gps.fix_t, vehicle.airspeed_t

@@ -22,7 +22,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -183,6 +183,43 @@ class Vehicle:
             self.airspeed = airspeed
             self.airspeed_t = t
 
+    def follow(self, fields: AidingFields, t: float | None) -> None:
+        """A GPS or airspeed message of the vehicle's, taken at its time ``t`` (its last
+        estimate's: the replay's fast path gives each message the one before it); None,
+        before it has one: not taken."""
+        if t is None:
+            return
+        if fields.message_id == mavlink2.MAVLINK_MSG_ID_VFR_HUD:
+            self.on_airspeed(fields.airspeed, t)
+        elif fields.message_id == mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT:
+            self.gps.on_fix(fields.fix_type, t)
+        else:
+            self.gps.on_velocity_report(fields.vx, fields.vy, fields.vz, fields.time_boot_ms, t)
+
+
+class AidingFields(NamedTuple):
+    """What the aiding state takes of a GPS or airspeed message, as on the wire
+    (pymavlink's numbers: ints, float32 widened exactly); the others' fields are 0."""
+
+    message_id: int
+    fix_type: int = 0  # GPS_RAW_INT
+    vx: int = 0  # GLOBAL_POSITION_INT, cm/s NED
+    vy: int = 0
+    vz: int = 0
+    time_boot_ms: int = 0  # GLOBAL_POSITION_INT's
+    airspeed: float = 0.0  # VFR_HUD, m/s
+
+    @classmethod
+    def of(cls, message: Any) -> AidingFields:
+        """The fields of a decoded GPS_RAW_INT, GLOBAL_POSITION_INT or VFR_HUD."""
+        message_id = message.get_msgId()
+        if message_id == mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT:
+            return cls(message_id, fix_type=message.fix_type)
+        if message_id == mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+            return cls(message_id, vx=message.vx, vy=message.vy, vz=message.vz,
+                       time_boot_ms=message.time_boot_ms)  # fmt: skip
+        return cls(message_id, airspeed=float(message.airspeed))
+
 
 class Pipeline:
     """Decode, estimate, answer. Feed it bytes (:meth:`on_bytes`) or messages."""
@@ -314,17 +351,10 @@ class Pipeline:
                 )
         elif name == "PARAM_VALUE" and message.param_id == "COMPASS_DEC":
             self._on_declination(system, component, float(message.param_value))
-        elif name == "VFR_HUD":
+        elif name in _AIDING_NAMES:
             vehicle = self.vehicles.get((system, component))
-            if vehicle is not None and vehicle.last_t is not None:
-                vehicle.on_airspeed(float(message.airspeed), vehicle.last_t)
-        elif name == "GLOBAL_POSITION_INT" or name == "GPS_RAW_INT":
-            vehicle = self.vehicles.get((system, component))
-            if vehicle is not None and vehicle.last_t is not None:
-                if name == "GPS_RAW_INT":
-                    vehicle.gps.on_fix(message.fix_type, vehicle.last_t)
-                else:
-                    vehicle.gps.on_velocity(message, vehicle.last_t)
+            if vehicle is not None:
+                vehicle.follow(AidingFields.of(message), vehicle.last_t)
         elif name == "HEARTBEAT":
             if self.is_vehicles_heartbeat(system, message):
                 vehicle = self._vehicle(system, component)
@@ -855,6 +885,8 @@ class Pipeline:
 INTERVAL_REQUESTS = 5
 
 _IMU_NAMES = frozenset(IMU_MESSAGES)
+# The vehicle's messages its aiding state follows (Vehicle.follow).
+_AIDING_NAMES = frozenset(("GPS_RAW_INT", "GLOBAL_POSITION_INT", "VFR_HUD"))
 
 # Requests a MAVLink component answers when they are addressed to it.
 _REQUESTS = frozenset(
