@@ -28,6 +28,14 @@ numbers, the output tlog, the Rerun recorder), in compiled loops over arrays:
   a new vehicle's HEARTBEAT, PARAM_VALUE, …) is one record through
   :meth:`Pipeline.on_message`, decoded by pymavlink, where it stands.
 
+It applies the pipeline's rules by calling them (the table in
+:mod:`mavest.service.pipeline` names each one's home). Three things it still
+states again on arrays, beside the pipeline's sample-by-sample code: the booking
+of a block's steps (counters, first and last times, the reports in the order the
+pipeline makes them: :meth:`BulkFeed._book`), the time of each truth and
+autopilot reference among the estimates (:func:`_times_of_references`), and which
+stream an IMU record goes to (:meth:`BulkFeed._imu_status`).
+
 So the outcome is the pipeline's, byte for byte: ``tests/test_bulk.py``
 replays files both ways (clean and damaged, rebooting, with GPS, airspeed,
 magnetometer and truth, the shared real tlogs) and compares the output tlogs,

@@ -13,6 +13,39 @@ answers them.
 
 Everything here is synchronous and quick (tens of µs per sample); the runners
 call it from the event loop.
+
+Where each rule is written, once: a function (here unless named) that takes one
+sample's numbers or a block's arrays alike, which the replay's fast path
+(:mod:`mavest.service.bulk`) calls as the pipeline does; what that path still
+states again on its arrays is listed in its own docstring.
+
+=========================================  =========================================
+which samples are estimated                :func:`valid_sample` (why not:
+                                           ``_rejection_reason``; counted by
+                                           :func:`reject_sample`)
+which magnetometer readings are used       :func:`usable_mag`
+saturated fields, HIGHRES_IMU's fresh bits :func:`mavest.mavlink.messages.at_limit`,
+                                           :func:`~mavest.mavlink.messages.all_fresh`
+whether GPS or airspeed aiding applies     :meth:`Pipeline.gps_aiding`,
+                                           :meth:`Pipeline.airspeed_aiding`,
+                                           :func:`is_fixed_wing`
+what a GPS or airspeed message changes     :meth:`Vehicle.follow` (:class:`AidingFields`)
+whether that is fresh for a sample         :func:`mavest.service.aiding.gps_fresh`,
+                                           :func:`~mavest.service.aiding.airspeed_fresh`
+which estimates are answered               :func:`answerable`, :func:`answers_due`,
+                                           :func:`next_output_after`
+when mavest's HEARTBEAT goes out (replay)  :func:`heartbeats_after`
+which stream an ATTITUDE is compared with  :meth:`Pipeline.autopilot_stream`,
+                                           :func:`autopilot_time`,
+                                           :func:`autopilot_restarted`;
+                                           SIMSTATE: :meth:`Pipeline.truth_vehicle`
+what is said of the filter's steps         :func:`report_health`, :func:`report_realigned`,
+                                           :func:`report_heading`,
+                                           :func:`report_accel_unit`
+whose messages are followed at all         :meth:`Pipeline.is_ours`, :meth:`Pipeline.follows`,
+                                           :meth:`Pipeline.stream_declined`
+packets found, checked, packed             :mod:`mavest.mavlink.framing`
+=========================================  =========================================
 """
 
 from __future__ import annotations
