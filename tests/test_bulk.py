@@ -488,6 +488,7 @@ def test_aiding_fields_equal_pymavlink(name: str) -> None:
     """The GPS and airspeed fields the fast path follows, decoded in bulk, against
     pymavlink's messages of the same packets (MAVLink 1 and 2, trailing zeros cut)."""
     from mavest.service import bulk as service_bulk
+    from mavest.service.pipeline import AIDING_FIELDS, AidingFields
     from mavest.service.runners import REPLAY_MESSAGES
 
     packets = _imu_packets(name, 300, seed=len(name))
@@ -496,15 +497,19 @@ def test_aiding_fields_equal_pymavlink(name: str) -> None:
     index = framing.scan(array, 0, -1, 1000)
     assert len(index) == len(packets)
     decoded = service_bulk._Decoded(array, index, service_bulk.record_kinds(REPLAY_MESSAGES))
+    fields = {
+        "GPS_RAW_INT": ["fix_type"],
+        "GLOBAL_POSITION_INT": ["vx", "vy", "vz", "time_boot_ms"],
+        "VFR_HUD": ["airspeed"],
+    }[name]
+    assert list(AIDING_FIELDS[name]) == fields
     for i, packet in enumerate(packets):
         message = MAVLink(None).decode(bytearray(packet))
-        if name == "GPS_RAW_INT":
-            assert decoded.fix_type[i] == message.fix_type
-        elif name == "GLOBAL_POSITION_INT":
-            assert decoded.velocity_cm[i].tolist() == [message.vx, message.vy, message.vz]
-            assert decoded.report_ms[i] == message.time_boot_ms
-        else:
-            assert float(decoded.airspeed[i]) == message.airspeed
+        for field in fields:
+            assert decoded.aiding[field][i] == getattr(message, field), field
+        assert AidingFields.of(message) == AidingFields(
+            message.get_msgId(), **{field: decoded.aiding[field][i].item() for field in fields}
+        )
 
 
 # ------------------------------------------------------------------ encoding

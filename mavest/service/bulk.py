@@ -68,6 +68,7 @@ from mavest.mavlink.messages import (
 from mavest.mavlink.tlog import TlogWriter
 from mavest.service.aiding import airspeed_fresh, gps_acceleration_at
 from mavest.service.pipeline import (
+    AIDING_FIELDS,
     HEADING_EVENTS,
     HEALTH_EVENTS,
     MAG_NOT_TAKEN,
@@ -105,18 +106,15 @@ OTHER = 4  # decoded and handled one at a time, ending the stretch
 # it ends the stretch like OTHER.
 BEAT = 5
 
-_INLINE_MESSAGES = ("GLOBAL_POSITION_INT", "GPS_RAW_INT", "VFR_HUD", "ATTITUDE")
-_AIDING_IDS = np.array(
-    [getattr(mavlink2, f"MAVLINK_MSG_ID_{name}") for name in _INLINE_MESSAGES[:3]]
-)
+_INLINE_MESSAGES = (*AIDING_FIELDS, "ATTITUDE")
 _ATTITUDE = mavlink2.MAVLINK_MSG_ID_ATTITUDE
 _HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
-_GPS_RAW_INT = mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT
-_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
-_VFR_HUD = mavlink2.MAVLINK_MSG_ID_VFR_HUD
+# the fields taken of each message AIDING_FIELDS names, by its id; and its wire type
+_AIDING_TAKEN = {
+    getattr(mavlink2, f"MAVLINK_MSG_ID_{name}"): fields for name, fields in AIDING_FIELDS.items()
+}
 _AIDING_DTYPES = {
-    message_id: bulk.wire_dtype(mavlink2.mavlink_map[message_id])
-    for message_id in _AIDING_IDS.tolist()
+    message_id: bulk.wire_dtype(mavlink2.mavlink_map[message_id]) for message_id in _AIDING_TAKEN
 }
 
 _SIMSTATE = mavlink2.MAVLINK_MSG_ID_SIMSTATE
@@ -216,25 +214,21 @@ class _Decoded:
         if rows.shape[0]:
             payloads = bulk.decode_payloads(data, records.part(rows), _SIMSTATE_DTYPE)
             self.truth[rows] = bulk.simstate_euler(payloads)
-        # the fields of GPS and airspeed messages that the aiding state takes, as on
-        # the wire (pymavlink's numbers: ints, and float32 widened exactly)
-        self.fix_type = np.zeros(n, dtype=np.int64)  # GPS_RAW_INT
-        self.velocity_cm = np.zeros((n, 3), dtype=np.int64)  # GLOBAL_POSITION_INT vx, vy, vz
-        self.report_ms = np.zeros(n, dtype=np.int64)  # GLOBAL_POSITION_INT time_boot_ms
-        self.airspeed = np.zeros(n)  # VFR_HUD
-        for message_id, dtype in _AIDING_DTYPES.items():
+        # the fields of GPS and airspeed messages that the aiding state takes
+        # (AIDING_FIELDS), a column each, as on the wire (pymavlink's numbers: ints, and
+        # float32 widened exactly)
+        self.aiding: dict[str, np.ndarray] = {}
+        for message_id, fields in _AIDING_TAKEN.items():
+            dtype = _AIDING_DTYPES[message_id]
+            for field in fields:
+                wide = np.float64 if dtype[field].kind == "f" else np.int64
+                self.aiding[field] = np.zeros(n, dtype=wide)
             rows = np.flatnonzero(records.message_id == message_id)
             if not rows.shape[0] or kinds[message_id] != INLINE:
                 continue
             payloads = bulk.decode_payloads(data, records.part(rows), dtype)
-            if message_id == _GPS_RAW_INT:
-                self.fix_type[rows] = payloads["fix_type"]
-            elif message_id == _GLOBAL_POSITION_INT:
-                for axis, name in enumerate(("vx", "vy", "vz")):
-                    self.velocity_cm[rows, axis] = payloads[name]
-                self.report_ms[rows] = payloads["time_boot_ms"]
-            else:
-                self.airspeed[rows] = payloads["airspeed"]
+            for field in fields:
+                self.aiding[field][rows] = payloads[field]
         # the autopilot's ATTITUDE: its time_boot_ms and angles (float32 widened exactly)
         self.attitude_ms = np.zeros(n, dtype=np.int64)
         self.attitude = np.empty((n, 3))
@@ -1096,10 +1090,7 @@ def _follow_many(
     airspeed messages (rows of ``decoded``, in order), each at its vehicle time (None:
     no time yet, so it is not taken); the state after each."""
     gps = vehicle.gps
-    fix_type = decoded.fix_type[rows].tolist()
-    velocity = decoded.velocity_cm[rows].tolist()
-    report_ms = decoded.report_ms[rows].tolist()
-    airspeed = decoded.airspeed[rows].tolist()
+    columns = {field: column[rows].tolist() for field, column in decoded.aiding.items()}
     m = rows.shape[0]
     accel = np.full((m + 1, 3), math.nan)
     accel_t = np.empty(m + 1)
@@ -1109,9 +1100,8 @@ def _follow_many(
         accel[0] = gps.accel
     accel_t[0], fix_t[0], airspeed_t[0] = gps.accel_t, gps.fix_t, vehicle.airspeed_t
     for k, message_id in enumerate(message_ids.tolist()):
-        vx, vy, vz = velocity[k]
-        fields = AidingFields(message_id, fix_type[k], vx, vy, vz, report_ms[k], airspeed[k])
-        vehicle.follow(fields, times[k])
+        values = {field: columns[field][k] for field in _AIDING_TAKEN[message_id]}
+        vehicle.follow(AidingFields(message_id, **values), times[k])
         if gps.accel is not None:
             accel[k + 1] = gps.accel
         accel_t[k + 1], fix_t[k + 1], airspeed_t[k + 1] = gps.accel_t, gps.fix_t, vehicle.airspeed_t

@@ -230,9 +230,19 @@ class Vehicle:
             self.gps.on_velocity_report(fields.vx, fields.vy, fields.vz, fields.time_boot_ms, t)
 
 
+# The messages a vehicle's aiding state follows, and what it takes of each: its fields of
+# these names (AidingFields', Vehicle.follow).
+AIDING_FIELDS: dict[str, tuple[str, ...]] = {
+    "GLOBAL_POSITION_INT": ("vx", "vy", "vz", "time_boot_ms"),
+    "GPS_RAW_INT": ("fix_type",),
+    "VFR_HUD": ("airspeed",),
+}
+
+
 class AidingFields(NamedTuple):
-    """What the aiding state takes of a GPS or airspeed message, as on the wire
-    (pymavlink's numbers: ints, float32 widened exactly); the others' fields are 0."""
+    """What the aiding state takes of a GPS or airspeed message (:data:`AIDING_FIELDS`),
+    as on the wire (pymavlink's numbers: ints, float32 widened exactly); the others'
+    fields are 0."""
 
     message_id: int
     fix_type: int = 0  # GPS_RAW_INT
@@ -245,13 +255,8 @@ class AidingFields(NamedTuple):
     @classmethod
     def of(cls, message: Any) -> AidingFields:
         """The fields of a decoded GPS_RAW_INT, GLOBAL_POSITION_INT or VFR_HUD."""
-        message_id = message.get_msgId()
-        if message_id == mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT:
-            return cls(message_id, fix_type=message.fix_type)
-        if message_id == mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
-            return cls(message_id, vx=message.vx, vy=message.vy, vz=message.vz,
-                       time_boot_ms=message.time_boot_ms)  # fmt: skip
-        return cls(message_id, airspeed=float(message.airspeed))
+        taken = AIDING_FIELDS[message.get_type()]
+        return cls(message.get_msgId(), **{name: getattr(message, name) for name in taken})
 
 
 class Pipeline:
@@ -384,7 +389,7 @@ class Pipeline:
                 )
         elif name == "PARAM_VALUE" and message.param_id == "COMPASS_DEC":
             self._on_declination(system, component, float(message.param_value))
-        elif name in _AIDING_NAMES:
+        elif name in AIDING_FIELDS:
             vehicle = self.vehicles.get((system, component))
             if vehicle is not None:
                 vehicle.follow(AidingFields.of(message), vehicle.last_t)
@@ -918,8 +923,6 @@ class Pipeline:
 INTERVAL_REQUESTS = 5
 
 _IMU_NAMES = frozenset(IMU_MESSAGES)
-# The vehicle's messages its aiding state follows (Vehicle.follow).
-_AIDING_NAMES = frozenset(("GPS_RAW_INT", "GLOBAL_POSITION_INT", "VFR_HUD"))
 
 # Requests a MAVLink component answers when they are addressed to it.
 _REQUESTS = frozenset(
@@ -1138,7 +1141,7 @@ def _rejection_reason(sample: ImuSample) -> str:
         return "a value not finite (NaN or infinity)"
     if sample.saturated:
         return "saturated: a gyro or accelerometer axis at its integer field's limit"
-    if sample.accel == (0.0, 0.0, 0.0):
+    if not reads_something(sample.accel):
         # no real accelerometer reads exactly nothing on three axes (noise alone moves
         # it): the message is empty, e.g. ArduPilot's SCALED_IMU3 without a third IMU
         return "accelerometer all zero: no sensor data"
