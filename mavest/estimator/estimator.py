@@ -177,6 +177,28 @@ def _series3(value: ArrayLike, n: int, name: str) -> np.ndarray:
 _LONE_BATCHES = 256
 
 
+class _OnlineUpdate:
+    """``Estimator.update`` as an estimator gives it: its online step's own method once
+    that step is due, else the Python method below.
+
+    A caller that fetches ``update`` once and calls it in a loop then gets the compiled
+    method itself, with no Python frame of ours on the way: a frame costs about as much
+    as the rest of the way in. (Fetching it makes the online step, as the first call
+    would have; the instance attribute ``_bind_update`` sets then shadows this.)
+    """
+
+    def __init__(self, method: Callable[..., Any]) -> None:
+        self._method = method
+        self.__doc__ = method.__doc__
+
+    def __get__(self, estimator: Estimator | None, cls: type | None = None) -> Any:
+        if estimator is None:
+            return self._method
+        cls = type(estimator)
+        compiled = cls._compiled_update(estimator)
+        return compiled if compiled is not None else self._method.__get__(estimator, cls)
+
+
 class Estimator:
     """Online attitude and gyro-bias estimator.
 
@@ -212,6 +234,13 @@ class Estimator:
         self._online_kind = _ONLINE
         # the samples update has taken as batches of one (not batch-fed: none to take)
         self._batched_alone = 0 if batch_fed else _LONE_BATCHES
+
+    def _compiled_update(self) -> Callable[..., Any] | None:
+        """The online step's own update, made now if it is due (not batch-fed, or
+        past its lone batches); None while update is to run as a batch of one."""
+        if self._online is None and self._batched_alone >= _LONE_BATCHES:
+            self._start_online()
+        return None if self._online is None else self._online.update
 
     def _start_online(self) -> None:
         self._online = self._online_kind(self._state, self._coefficients)
@@ -382,6 +411,7 @@ class Estimator:
         """Whether a magnetometer has set the heading (9-D); else heading is free (6-D)."""
         return bool(self._state["mag_state"][0])
 
+    @_OnlineUpdate
     def update(
         self,
         t: float,
