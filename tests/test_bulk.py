@@ -403,6 +403,93 @@ def test_sample_rules_decide_alike_on_one_sample_and_on_columns() -> None:
     assert usable_mag(tuple(mag.T)).tolist() == expected_mag
 
 
+def test_step_counts_and_news_alike_on_one_step_and_on_a_block() -> None:
+    """count_estimated, is_news and heading_source_due take one step live and a block in
+    replay: each way what a plain statement of the rule gives."""
+    from mavest.estimator.layout import StepFlags
+    from mavest.service.pipeline import (
+        MAG_WAIT,
+        Stream,
+        StreamStats,
+        count_estimated,
+        heading_source_due,
+        is_news,
+    )
+
+    bits = [value for name, value in vars(StepFlags).items() if name.isupper()]
+    bits = [value for value in bits if value & (value - 1) == 0]  # (one bit each)
+    rng = random.Random(5)
+    flags = [sum({rng.choice(bits) for _ in range(rng.randrange(4))}) for _ in range(3000)]
+    flags = [f | StepFlags.ACCEL_AIDED if rng.random() < 0.2 else f for f in flags]
+    usable = [rng.random() < 0.6 for _ in flags]
+    used = [rng.random() < 0.5 for _ in flags]
+
+    def taken(f: int, u: bool) -> bool:
+        return u and not f & (StepFlags.MAG_BETWEEN_UPDATES | StepFlags.MAG_SET_ASIDE)
+
+    expected = StreamStats(
+        estimated=len(flags),
+        gps_aided=sum(bool(f & StepFlags.ACCEL_AIDED) for f in flags),
+        mag_usable=sum(usable),
+        mag_taken=sum(taken(f, u) for f, u in zip(flags, usable, strict=True)),
+        mag_used=sum(taken(f, u) and m for f, u, m in zip(flags, usable, used, strict=True)),
+    )
+    one_by_one = StreamStats()
+    for f, u, m in zip(flags, usable, used, strict=True):
+        count_estimated(one_by_one, f, u, m)
+    block = StreamStats()
+    count_estimated(block, np.array(flags), np.array(usable), np.array(used))
+    assert one_by_one == expected and block == expected
+    assert expected.mag_taken < expected.mag_usable and expected.mag_used > 0
+
+    news = StepFlags.GAP_REALIGNED | StepFlags.TILT_REOPENED | StepFlags.DIVERGED
+    news |= StepFlags.UNHEALTHY_RESET | StepFlags.CLIP_REALIGNED | StepFlags.HEADING_ALIGNED
+    news |= StepFlags.HEADING_REOPENED | StepFlags.MAG_REFERENCE_CHANGED
+    expected_news = [bool(f & news) for f in flags]
+    assert [is_news(f) for f in flags] == expected_news
+    assert is_news(np.array(flags)).tolist() == expected_news
+    assert 0 < sum(expected_news) < len(flags)
+
+    stream = Stream(None, None)  # type: ignore[arg-type]  (only its flag is read)
+    spans = [0.0, MAG_WAIT / 2, math.nextafter(MAG_WAIT, 0.0), MAG_WAIT, 10.0, math.nan]
+    for said in (False, True):
+        stream.heading_source_reported = said
+        due = [not said and span >= MAG_WAIT for span in spans]
+        assert [bool(heading_source_due(stream, span)) for span in spans] == due
+        assert heading_source_due(stream, np.array(spans)).tolist() == due
+
+
+def test_imu_routes_in_the_pipelines_order() -> None:
+    """route_imu: a system not followed is ignored before anything else; a stale sample
+    is passed by; a known stream estimates; a declined one passes by; else it is new."""
+    from mavest.mavlink.messages import StreamKey
+    from mavest.service.pipeline import ImuRoute, Pipeline
+
+    pipeline = Pipeline(ServiceConfig())
+    ground = StreamKey(255, 190, "RAW_IMU", 0)
+    key = StreamKey(1, 1, "RAW_IMU", 0)
+    assert pipeline.route_imu(ground, True) == (ImuRoute.IGNORED, None)
+    assert pipeline.route_imu(ground, False) == (ImuRoute.IGNORED, None)
+    assert pipeline.route_imu(key, True) == (ImuRoute.NEW, None)
+    assert pipeline.route_imu(key, False) == (ImuRoute.PASSED_BY, None)
+    mav = MAVLink(None, srcSystem=1, srcComponent=1)
+    raw = mav.raw_imu_encode(1000, 0, 0, -1000, 0, 0, 0, 200, 0, 400, 0, 3500)
+    pipeline.on_message(mavlink2.MAVLink(None).decode(bytearray(raw.pack(mav))), 0)
+    stream = pipeline.streams[key]
+    assert pipeline.route_imu(key, True) == (ImuRoute.ESTIMATED, stream)
+    assert pipeline.route_imu(key, False) == (ImuRoute.PASSED_BY, None)
+    scaled = StreamKey(1, 1, "SCALED_IMU2", 1)  # RAW_IMU is preferred: declined
+    assert pipeline.route_imu(scaled, True) == (ImuRoute.NEW, None)
+    pipeline.on_message(
+        mavlink2.MAVLink(None).decode(
+            bytearray(mav.scaled_imu2_encode(1000, 0, 0, -1000, 0, 0, 0, 0, 0, 0).pack(mav))
+        ),
+        0,
+    )
+    assert scaled not in pipeline.streams
+    assert pipeline.route_imu(scaled, True) == (ImuRoute.PASSED_BY, None)
+
+
 # ------------------------------------------------------------------ decoding
 
 

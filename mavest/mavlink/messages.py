@@ -175,6 +175,22 @@ class ImuSample(NamedTuple):
         return self.gyro_saturated or self.accel_saturated
 
 
+def imu_stream(message: Any) -> tuple[StreamKey, bool]:
+    """An IMU message's stream, and whether it is a sample: its gyro and accelerometer
+    fresh (HIGHRES_IMU's ``fields_updated``; the other messages always are)."""
+    name = message._type
+    header = message._header
+    fresh = True
+    if name == "HIGHRES_IMU":
+        fresh = all_fresh(message.fields_updated, HIGHRES_INERTIAL_BITS)
+        instance = message.id
+    elif name == "RAW_IMU":
+        instance = message.id  # a MAVLink 2 extension: 0 when sent as MAVLink 1
+    else:
+        instance = SCALED_IMU_INSTANCE[name]
+    return StreamKey(header.srcSystem, header.srcComponent, name, instance), fresh
+
+
 def decode_imu(message: Any) -> ImuSample | None:
     """The IMU sample in an IMU message; None for other messages or a HIGHRES_IMU
     whose ``fields_updated`` says gyro or accelerometer are not fresh."""
@@ -182,18 +198,10 @@ def decode_imu(message: Any) -> ImuSample | None:
     fmt = IMU_FORMATS.get(name)
     if fmt is None:
         return None
-    header = message._header
-    mag_fresh = True
-    if name == "HIGHRES_IMU":
-        updated = message.fields_updated
-        if not all_fresh(updated, HIGHRES_INERTIAL_BITS):
-            return None
-        mag_fresh = all_fresh(updated, HIGHRES_MAG_BITS)
-        instance = message.id
-    elif name == "RAW_IMU":
-        instance = message.id  # a MAVLink 2 extension: 0 when sent as MAVLink 1
-    else:
-        instance = SCALED_IMU_INSTANCE[name]
+    key, fresh = imu_stream(message)
+    if not fresh:
+        return None
+    mag_fresh = name != "HIGHRES_IMU" or all_fresh(message.fields_updated, HIGHRES_MAG_BITS)
     a, g, m = fmt.accel_scale, fmt.gyro_scale, fmt.mag_scale
     gx, gy, gz = message.xgyro, message.ygyro, message.zgyro
     ax, ay, az = message.xacc, message.yacc, message.zacc
@@ -201,7 +209,7 @@ def decode_imu(message: Any) -> ImuSample | None:
     gyro_saturated = limits is not None and at_limit((gx, gy, gz), limits)
     accel_saturated = limits is not None and at_limit((ax, ay, az), limits)
     return ImuSample(
-        StreamKey(header.srcSystem, header.srcComponent, name, instance),
+        key,
         getattr(message, fmt.time_field),
         fmt.time_scale,
         (gx * g, gy * g, gz * g),

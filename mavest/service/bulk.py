@@ -29,12 +29,14 @@ numbers, the output tlog, the Rerun recorder), in compiled loops over arrays:
   :meth:`Pipeline.on_message`, decoded by pymavlink, where it stands.
 
 It applies the pipeline's rules by calling them (the table in
-:mod:`mavest.service.pipeline` names each one's home). Three things it still
-states again on arrays, beside the pipeline's sample-by-sample code: the booking
-of a block's steps (counters, first and last times, the reports in the order the
-pipeline makes them: :meth:`BulkFeed._book`), the time of each truth and
-autopilot reference among the estimates (:func:`_times_of_references`), and which
-stream an IMU record goes to (:meth:`BulkFeed._imu_status`).
+:mod:`mavest.service.pipeline` names each one's home), on a block's arrays where
+the rule takes them (:func:`~mavest.service.pipeline.count_estimated`,
+:func:`~mavest.service.pipeline.answerable`, …) and on the few steps that are news
+one at a time (:func:`~mavest.service.pipeline.book_step`). What is its own is
+how it holds the pipeline's state across a block: each record's place among the
+estimates gives the time the pipeline would hold there (:func:`_time_at`), which
+times the truth, the autopilot's ATTITUDE and the aiding messages as
+``Vehicle.last_t`` and ``StreamStats.last_t`` do.
 
 So the outcome is the pipeline's, byte for byte: ``tests/test_bulk.py``
 replays files both ways (clean and damaged, rebooting, with GPS, airspeed,
@@ -69,11 +71,8 @@ from mavest.mavlink.tlog import TlogWriter
 from mavest.service.aiding import airspeed_fresh, gps_acceleration_at
 from mavest.service.pipeline import (
     AIDING_FIELDS,
-    HEADING_EVENTS,
-    HEALTH_EVENTS,
-    MAG_NOT_TAKEN,
-    MAG_WAIT,
     AidingFields,
+    ImuRoute,
     Pipeline,
     Stream,
     Vehicle,
@@ -81,13 +80,14 @@ from mavest.service.pipeline import (
     answers_due,
     autopilot_restarted,
     autopilot_time,
+    book_step,
+    count_estimated,
+    heading_source_due,
     heartbeats_after,
     is_fixed_wing,
+    is_news,
     reject_sample,
     report_accel_unit,
-    report_heading,
-    report_health,
-    report_realigned,
     usable_mag,
     valid_sample,
 )
@@ -269,9 +269,6 @@ class _Steps:
         self.bias = series.bias
         self.flags = series.flags
         self.usable_mag = usable_mag
-        self.mag_used = series.mag_used & usable_mag
-        # the usable readings the filter took (as Pipeline.on_message counts them)
-        self.taken_mag = usable_mag & (series.flags & MAG_NOT_TAKEN == 0)
         self.gyro = gyro  # for the answers' rates
         # Estimator.accel_unit_problem after the steps: read on the filter's thread, which
         # is on to the next part by the time they are booked
@@ -361,7 +358,8 @@ class BulkFeed:
     def _imu_status(
         self, records: framing.RecordIndex, decoded: _Decoded, rows: np.ndarray
     ) -> tuple[np.ndarray, Stream | None]:
-        """Per IMU record, what the pipeline does with it; the stream estimated in bulk."""
+        """Per IMU record, what the pipeline does with it (Pipeline.route_imu, once per
+        stream and freshness); the stream estimated in bulk."""
         status = np.full(rows.shape[0], _ALONE, dtype=np.int8)
         if not rows.shape[0]:
             return status, None
@@ -382,18 +380,17 @@ class BulkFeed:
                 _IMU_IDS[(value >> 8) & 0xFFFFFF],
                 value & 0xFF,
             )
-            if not pipeline.follows(key.system):
-                continue  # counted and said by the pipeline: alone
             mine = code == value
-            # a HIGHRES_IMU without fresh gyro and accelerometer is passed by first of all
-            status[mine & ~fresh] = _PASSED_BY
-            mine &= fresh
-            known = pipeline.streams.get(key)
-            if known is not None and (stream is None or known is stream):
-                stream = known
-                status[mine] = _ESTIMATED
-            elif known is None and pipeline.stream_declined(key):
-                status[mine] = _PASSED_BY
+            for is_fresh in (False, True):
+                route, known = pipeline.route_imu(key, is_fresh)
+                these = mine & (fresh == is_fresh)
+                if route is ImuRoute.PASSED_BY:
+                    status[these] = _PASSED_BY
+                elif route is ImuRoute.ESTIMATED and (stream is None or known is stream):
+                    stream = known
+                    status[these] = _ESTIMATED
+                # else the pipeline's own, one at a time: ignored (it counts them), new,
+                # or a second stream estimated
         return status, stream
 
     def _truth_end(
@@ -615,10 +612,7 @@ class BulkFeed:
         end = int(rows[n - 1]) if n else start
         messages = _aiding_rows(records, decoded, start, end, vehicle)
         message_ids = records.message_id[messages]
-        before = np.searchsorted(rows, messages)  # samples before each message
-        times: list[float | None] = [
-            float(t[upto - 1]) if upto else vehicle.last_t for upto in before.tolist()
-        ]
+        times = _as_times(_time_at(rows, t, messages, vehicle.last_t))
         state = copy.copy(vehicle)
         state.gps = copy.copy(vehicle.gps)
         gps_aiding = pipeline.gps_aiding(stream)
@@ -845,14 +839,8 @@ class BulkFeed:
                 continue
             mine = np.flatnonzero(code == value)
             before = math.nan if compared.stats.last_t is None else compared.stats.last_t
-            if compared is stream:
-                # the stream's last estimate before each (its stats.last_t there)
-                upto = np.searchsorted(estimate_rows, rows[mine])
-                before = np.where(
-                    upto > 0,
-                    estimate_t[np.maximum(upto - 1, 0)] if estimate_t.shape[0] else math.nan,
-                    math.nan if last_t is None else last_t,
-                )
+            if compared is stream:  # its stats.last_t at each
+                before = _time_at(estimate_rows, estimate_t, rows[mine], last_t)
             mine = mine[~autopilot_restarted(t[mine], before)]
             known = [k for k, other in enumerate(streams) if other is compared]
             target[mine] = known[0] if known else len(streams)
@@ -923,8 +911,9 @@ class BulkFeed:
             first, first_truth = last, last_truth
 
     def _book(self, stream: Stream, vehicle: Vehicle, steps: _Steps) -> np.ndarray:
-        """Count and report what the steps did, as the pipeline does sample by sample;
-        returns the indices of those estimated (not skipped)."""
+        """Count and report what the steps did (the pipeline's count_estimated on the
+        block, book_step on its news); returns the indices of those estimated (not
+        skipped)."""
         stats = stream.stats
         flags = steps.flags
         t = steps.t
@@ -935,12 +924,12 @@ class BulkFeed:
         wrong_unit = int(np.count_nonzero(flags[kept] & StepFlags.ACCEL_WRONG_UNIT))
         if wrong_unit:
             report_accel_unit(stream, wrong_unit, steps.accel_unit_problem)
-        # the rare samples that are news, in order, with the counters as they stood
-        notable = skipped | ((flags & (StepFlags.GAP_REALIGNED | HEALTH_EVENTS)) != 0)
-        notable |= (flags & HEADING_EVENTS) != 0
+        # the rare steps that are news, in order, each booked with the stream's last
+        # time as it stood before it
+        notable = skipped | is_news(flags)
         if not stream.heading_source_reported and kept.shape[0]:
             first_t = stats.first_t if stats.first_t is not None else float(t[kept[0]])
-            due = kept[t[kept] - first_t >= MAG_WAIT]
+            due = kept[heading_source_due(stream, t[kept] - first_t)]
             if due.shape[0]:
                 notable[due[0]] = True
         last_t = stats.last_t
@@ -953,27 +942,14 @@ class BulkFeed:
                 continue
             earlier = kept[kept < index]
             stats.last_t = float(t[earlier[-1]]) if earlier.shape[0] else last_t
-            ti = float(t[index])
-            if f & StepFlags.GAP_REALIGNED:
-                report_realigned(stream, ti)
-            if f & HEALTH_EVENTS:
-                report_health(stream, f, ti)
-            if stats.first_t is None:
-                stats.first_t = ti
-            stats.last_t = ti
-            if f & HEADING_EVENTS or not stream.heading_source_reported:
-                report_heading(stream, f)
+            book_step(stream, f, float(t[index]))
         stats.last_t = last_t
         if not kept.shape[0]:
             return kept
-        stats.estimated += kept.shape[0]
-        stats.gps_aided += int(np.count_nonzero(flags[kept] & StepFlags.ACCEL_AIDED))
+        count_estimated(stats, flags[kept], steps.usable_mag[kept], steps.series.mag_used[kept])
         if stats.first_t is None:
             stats.first_t = float(t[kept[0]])
         stats.last_t = float(t[kept[-1]])
-        stats.mag_usable += int(np.count_nonzero(steps.usable_mag[kept]))
-        stats.mag_taken += int(np.count_nonzero(steps.taken_mag[kept]))
-        stats.mag_used += int(np.count_nonzero(steps.mag_used[kept]))
         vehicle.last_t = stats.last_t
         return kept
 
@@ -1004,14 +980,13 @@ class BulkFeed:
             if t.shape[0]:
                 stream.vs_truth.add_many(np.full(t.shape[0], ESTIMATE), t, euler)
             return np.empty(0)
+        # each truth at the vehicle's last_t there (the last estimate's time)
+        truth_t = _time_at(rows, t, truth_rows, last_t_before)
         kinds, sort = _in_order(rows, truth_rows)
         euler_all = np.concatenate([euler, decoded.truth[truth_rows]])[sort]
-        times = np.concatenate([t, np.full(truth_rows.shape[0], math.nan)])[sort]
-        times = _times_of_references(times, kinds, last_t_before)
+        times = np.concatenate([t, truth_t])[sort]
         use = ~np.isnan(times)  # truth before any estimate of the vehicle: not compared
         stream.vs_truth.add_many(kinds[use], times[use], euler_all[use])
-        truth_t = np.empty(truth_rows.shape[0])
-        truth_t[sort[sort >= t.shape[0]] - t.shape[0]] = times[kinds == REFERENCE]
         return truth_t
 
     def _answers(
@@ -1128,11 +1103,25 @@ def _vehicle_times(
 ) -> list[float | None]:
     """A vehicle's time at each of these rows (in order), as the pipeline has it there:
     its last estimate's (``estimated_at``: the steps estimated), else ``before``."""
-    if steps is None or not estimated_at.shape[0]:
+    if steps is None:
         return [before] * rows.shape[0]
-    upto = np.searchsorted(estimated_at, np.searchsorted(steps.rows, rows))
-    at = steps.t[estimated_at[np.maximum(upto - 1, 0)]].tolist()
-    return [at[k] if u else before for k, u in enumerate(upto.tolist())]
+    return _as_times(_time_at(steps.rows[estimated_at], steps.t[estimated_at], rows, before))
+
+
+def _time_at(
+    estimate_rows: np.ndarray, estimate_t: np.ndarray, rows: np.ndarray, before: float | None
+) -> np.ndarray:
+    """The time of the last estimate before each of ``rows`` (the estimates at
+    ``estimate_rows``, ascending, made at ``estimate_t``): the ``last_t`` the pipeline
+    holds when it comes to that record. ``before`` where there is none (NaN for None)."""
+    upto = np.searchsorted(estimate_rows, rows)
+    last = estimate_t[np.maximum(upto - 1, 0)] if estimate_t.shape[0] else math.nan
+    return np.where(upto > 0, last, math.nan if before is None else before)
+
+
+def _as_times(times: np.ndarray) -> list[float | None]:
+    """Times as the pipeline holds them: floats, None for none yet (NaN)."""
+    return [None if math.isnan(value) else value for value in times.tolist()]
 
 
 def _in_order(rows: np.ndarray, reference_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1145,12 +1134,3 @@ def _in_order(rows: np.ndarray, reference_rows: np.ndarray) -> tuple[np.ndarray,
         [np.full(rows.shape[0], ESTIMATE), np.full(reference_rows.shape[0], REFERENCE)]
     )[sort]
     return kinds, sort
-
-
-def _times_of_references(times: np.ndarray, kinds: np.ndarray, before: float | None) -> np.ndarray:
-    """Each reference's time: the last estimate's before it (``before`` if none in
-    the stretch, NaN if none at all), as the pipeline takes ``vehicle.last_t``."""
-    estimate_at = np.where(kinds == ESTIMATE, np.arange(times.shape[0]), -1)
-    last = np.maximum.accumulate(estimate_at) if times.shape[0] else estimate_at
-    filled = np.where(last >= 0, times[np.maximum(last, 0)], math.nan if before is None else before)
-    return np.where(kinds == ESTIMATE, times, filled)

@@ -20,6 +20,7 @@ sample's numbers or a block's arrays alike, which the replay's fast path
 states again on its arrays is listed in its own docstring.
 
 =========================================  =========================================
+which stream an IMU sample goes to         :meth:`Pipeline.route_imu`
 which samples are estimated                :func:`valid_sample` (why not:
                                            ``_rejection_reason``; counted by
                                            :func:`reject_sample`)
@@ -39,7 +40,10 @@ which stream an ATTITUDE is compared with  :meth:`Pipeline.autopilot_stream`,
                                            :func:`autopilot_time`,
                                            :func:`autopilot_restarted`;
                                            SIMSTATE: :meth:`Pipeline.truth_vehicle`
-what is said of the filter's steps         :func:`report_health`, :func:`report_realigned`,
+what is said and counted of the steps      :func:`book_step` (:func:`is_news`,
+                                           :func:`heading_source_due`),
+                                           :func:`count_estimated`,
+                                           :func:`report_health`, :func:`report_realigned`,
                                            :func:`report_heading`,
                                            :func:`report_accel_unit`
 whose messages are followed at all         :meth:`Pipeline.is_ours`, :meth:`Pipeline.follows`,
@@ -50,6 +54,7 @@ packets found, checked, packed             :mod:`mavest.mavlink.framing`
 
 from __future__ import annotations
 
+import enum
 import logging
 import math
 import time
@@ -73,6 +78,7 @@ from mavest.mavlink.messages import (
     StreamKey,
     decode_imu,
     ftp_opcode,
+    imu_stream,
     is_mavlink1,
     mavlink2,
     time_boot_ms,
@@ -103,6 +109,15 @@ _NATIVE_IMU = {
     mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA: "RAW_IMU",
     mavlink2.MAV_AUTOPILOT_PX4: "HIGHRES_IMU",
 }
+
+
+class ImuRoute(enum.Enum):
+    """What is done with an IMU sample (:meth:`Pipeline.route_imu`)."""
+
+    IGNORED = "ignored"  # from a system not followed: counted, said once
+    PASSED_BY = "passed by"  # not fresh (HIGHRES_IMU), or its stream is not followed
+    ESTIMATED = "estimated"  # by its stream, which is known
+    NEW = "new"  # its stream is seen for the first time: followed or declined now
 
 
 class EstimateSink(Protocol):
@@ -456,24 +471,41 @@ class Pipeline:
 
     def _on_imu(self, message: Any, system: int, component: int) -> None:
         start = time.perf_counter()
-        if not self.follows(system):
+        key, fresh = imu_stream(message)
+        route, stream = self.route_imu(key, fresh)
+        if route is ImuRoute.IGNORED:
             self._ignore_imu(system)
             return
-        sample = decode_imu(message)
-        if sample is None:  # HIGHRES_IMU without fresh gyro and accelerometer
+        if route is ImuRoute.PASSED_BY:
             return
-        stream = self.streams.get(sample.stream)
+        sample = decode_imu(message)
+        assert sample is not None  # (fresh)
         if stream is None:
-            if self.stream_declined(sample.stream):
-                return
-            stream = self._new_stream(sample.stream)
+            stream = self._new_stream(key)
             if stream is None:
-                self._not_followed.add(sample.stream)
+                self._not_followed.add(key)
                 return
             vehicle = self.vehicles[(system, component)]
             if vehicle.mavlink1 is None:  # no HEARTBEAT of its own yet
                 vehicle.mavlink1 = sample.mavlink1
         self._estimate(stream, sample, start)
+
+    def route_imu(self, key: StreamKey, fresh: bool) -> tuple[ImuRoute, Stream | None]:
+        """What is done with an IMU sample of stream ``key`` (``fresh``: its gyro and
+        accelerometer are, :func:`~mavest.mavlink.messages.imu_stream`), and the
+        stream that estimates from it if there is one yet. In this order: a system not
+        followed is ignored (and counted); a sample that is not fresh is passed by; a
+        known stream estimates; a stream declined passes it by; else it is new."""
+        if not self.follows(key.system):
+            return ImuRoute.IGNORED, None
+        if not fresh:
+            return ImuRoute.PASSED_BY, None
+        stream = self.streams.get(key)
+        if stream is not None:
+            return ImuRoute.ESTIMATED, stream
+        if self.stream_declined(key):
+            return ImuRoute.PASSED_BY, None
+        return ImuRoute.NEW, None
 
     def stream_declined(self, key: StreamKey) -> bool:
         """Whether a stream was seen and is not followed (the configuration does not
@@ -614,27 +646,12 @@ class Pipeline:
             return
         if stream.inputs is not None:
             stream.inputs.add(t, gyro, accel, mag, linear_accel)
-        if flags & StepFlags.ACCEL_AIDED:
-            stats.gps_aided += 1
-        elif airspeed_aided:
-            stats.airspeed_aided += 1
-        if flags & StepFlags.GAP_REALIGNED:
-            report_realigned(stream, t)
-        if flags & HEALTH_EVENTS:
-            report_health(stream, flags, t)
         if flags & StepFlags.ACCEL_WRONG_UNIT:
             report_accel_unit(stream, 1, stream.estimator.accel_unit_problem)
-        stats.estimated += 1
-        if stats.first_t is None:
-            stats.first_t = t
-        stats.last_t = t
-        if mag is not None:
-            stats.mag_usable += 1
-            if not flags & MAG_NOT_TAKEN:
-                stats.mag_taken += 1
-                stats.mag_used += estimate.mag_used
-        if flags & HEADING_EVENTS or not stream.heading_source_reported:
-            report_heading(stream, flags)
+        count_estimated(stats, flags, mag is not None, estimate.mag_used)
+        if airspeed_aided and not flags & StepFlags.ACCEL_AIDED:
+            stats.airspeed_aided += 1
+        book_step(stream, flags, t)
         vehicle.last_t = t
         euler = estimate.euler
         euler_tuple = (float(euler[0]), float(euler[1]), float(euler[2]))
@@ -1108,6 +1125,63 @@ def report_realigned(stream: Stream, t: float) -> None:
     log.warning("%s: no samples for %.2f s: attitude re-aligned", stream.key, gap)
 
 
+# The steps book_step says something of, whatever else holds (besides the heading's
+# source, said once when due: heading_source_due).
+_NEWS = StepFlags.GAP_REALIGNED | HEALTH_EVENTS | HEADING_EVENTS
+
+
+def is_news(flags: Any) -> Any:
+    """Whether a step (its flags; or a block's, element-wise) is one :func:`book_step`
+    reports on, whatever the stream's state."""
+    return (flags & _NEWS) != 0
+
+
+def heading_source_due(stream: Stream, span: Any) -> Any:
+    """Whether the heading's source is to be said for want of a magnetometer: not said
+    yet, and the stream has estimated for ``span`` s (one time, or a block's) without
+    the magnetometer setting heading."""
+    return (not stream.heading_source_reported) & (span >= MAG_WAIT)
+
+
+def book_step(stream: Stream, flags: int, t: float) -> None:
+    """Keep and say what one step, estimated at ``t``, did, in this order: a
+    realignment after a gap, the health checks' doings, the stream's first and last
+    times (which the heading's report reads), the heading's source and changes.
+
+    The replay's fast path calls it for the steps of a block that :func:`is_news` or
+    :func:`heading_source_due` single out, with the stream's last time as it stood
+    before each; the others change nothing here but the last time."""
+    stats = stream.stats
+    if flags & StepFlags.GAP_REALIGNED:
+        report_realigned(stream, t)
+    if flags & HEALTH_EVENTS:
+        report_health(stream, flags, t)
+    if stats.first_t is None:
+        stats.first_t = t
+    stats.last_t = t
+    if flags & HEADING_EVENTS or not stream.heading_source_reported:
+        report_heading(stream, flags)
+
+
+def _count(mask: Any) -> int:
+    """How many are true: a bool, or a block's mask."""
+    return int(mask) if isinstance(mask, bool) else int(np.count_nonzero(mask))
+
+
+def count_estimated(stats: StreamStats, flags: Any, mag_usable: Any, mag_used: Any) -> None:
+    """Count estimated steps: one step's flags and whether its sample had a usable
+    magnetometer reading and the step used it, or a block's arrays of them. A reading
+    is taken unless the step set it aside or it came between the magnetometer's
+    updates (MAG_NOT_TAKEN); the GPS-aided ones had the vehicle's acceleration removed
+    (ACCEL_AIDED)."""
+    stats.estimated += 1 if isinstance(mag_usable, bool) else len(mag_usable)
+    stats.gps_aided += _count((flags & StepFlags.ACCEL_AIDED) != 0)
+    taken = mag_usable & ((flags & MAG_NOT_TAKEN) == 0)
+    stats.mag_usable += _count(mag_usable)
+    stats.mag_taken += _count(taken)
+    stats.mag_used += _count(taken & mag_used)
+
+
 def report_heading(stream: Stream, flags: int) -> None:
     """Say once where heading comes from, and when the magnetometer's role changes."""
     stats = stream.stats
@@ -1115,7 +1189,7 @@ def report_heading(stream: Stream, flags: int) -> None:
         if not stream.heading_source_reported:
             log.info("%s: heading from the magnetometer (9-D)", stream.key)
         stream.heading_source_reported = True
-    elif not stream.heading_source_reported and stats.span >= MAG_WAIT:
+    elif heading_source_due(stream, stats.span):
         log.info(
             "%s: no magnetometer in the IMU messages: heading is free (6-D), yaw will drift",
             stream.key,
