@@ -28,11 +28,7 @@ EXEMPT_MODULES = {
 }
 
 # (module, name): a module touching an underscore name of an object it does not own.
-ALLOWED = {
-    # estimate(), beside Estimator in the module that defines it, words the unit error
-    # from the state of the estimator it has just made
-    ("mavest/estimator/estimator.py", "_state"): "Estimator's own module",
-}
+ALLOWED: dict[tuple[str, str], str] = {}
 
 
 def _is_private(name: str) -> bool:

@@ -46,7 +46,7 @@ import numpy as np
 
 import mavest
 from mavest import EstimatorConfig
-from mavest.datasets.broad import BroadTrial, list_trials, load_trial
+from mavest.datasets.broad import BroadTrial, halves, list_trials, load_trial
 from mavest.evaluation import report
 from mavest.evaluation.calibration import score_attitude
 from mavest.evaluation.metrics import rmse_deg
@@ -82,11 +82,6 @@ class TrialScore:
     inclination: float  # RMSE °, 6-D
     ratio: float  # tilt calibration ratio, 6-D
     rho: float  # σ–error rank correlation over 1 s windows, 6-D
-
-
-def halves(trials: Sequence[BroadTrial]) -> tuple[list[int], list[int]]:
-    """Alternate trials of the sorted list: A (1st, 3rd, …) and B (2nd, 4th, …)."""
-    return list(range(0, len(trials), 2)), list(range(1, len(trials), 2))
 
 
 def config_6d(values: tuple[float, float, float]) -> EstimatorConfig:
@@ -148,15 +143,6 @@ class Direction:
     choice_mag: float
 
 
-def _paired(ours: np.ndarray, theirs: np.ndarray) -> str:
-    """ "better on k of n, median difference d°"."""
-    diff = ours - theirs
-    return (
-        f"better on {int(np.sum(diff < 0))} of {len(diff)}, median difference "
-        f"{float(np.median(diff)):+.3f}°"
-    )
-
-
 def held_out_table(
     trials: Sequence[BroadTrial],
     directions: Sequence[Direction],
@@ -186,12 +172,12 @@ def held_out_table(
             f"| {d.tuned_on} → {d.held_out} | {chosen} "
             f"| {incl.mean():.3f}° / {np.mean([s.inclination for s in before]):.3f}° / "
             f"{incl_vqf.mean():.3f}° ({incl.mean() / incl_vqf.mean():.2f}×) "
-            f"| {_paired(incl, incl_vqf)} "
+            f"| {report.paired(incl, incl_vqf)} "
             f"| {_calibrated(ours)} of {len(ours)} (previous {_calibrated(before)}) "
             f"| {_median_rho(ours):+.2f} (previous {_median_rho(before):+.2f}) "
             f"| {total.mean():.3f}° / {np.mean([previous_9d[i] for i in d.subset]):.3f}° / "
             f"{total_vqf.mean():.3f}° ({total.mean() / total_vqf.mean():.2f}×) "
-            f"| {_paired(total, total_vqf)} |"
+            f"| {report.paired(total, total_vqf)} |"
         )
     return "\n".join(lines)
 

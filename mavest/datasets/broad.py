@@ -121,6 +121,13 @@ def list_trials(root: Path | None = None, prefixes: Sequence[str] | None = None)
     return paths
 
 
+def halves(trials: Sequence[object]) -> tuple[list[int], list[int]]:
+    """The trials (sorted, as :func:`list_trials` gives them) split in two halves to
+    choose parameters on one and report on the other: alternate trials, A (1st, 3rd, …)
+    and B (2nd, 4th, …), so that each half holds every kind of motion and disturbance."""
+    return list(range(0, len(trials), 2)), list(range(1, len(trials), 2))
+
+
 def _resolve_trial(path_or_name: Path | str) -> Path:
     """A trial file from a path, a full trial name, or a unique name prefix (``"07"``)."""
     path = Path(path_or_name)

@@ -229,6 +229,13 @@ class EstimatorConfig:
     # the same for a sample the caller knows clipped (an integer field at its limit).
     gyro_clip: float = math.radians(0.97 * 2000.0)  # rad/s
 
+    # Smoothing only (mavest.smooth): the forward pass takes the accelerometer
+    # low-passed forward and backward (zero phase) with this time constant in the
+    # gyro's strapdown frame, the backward pass takes it as measured (0: both as
+    # measured). The two passes' tilt errors are then less alike, and fusing them
+    # gains more (docs/design.md#smoothing; chosen on halves of BROAD: docs/results.md).
+    smooth_accel_time: float = 0.5  # s
+
     def __post_init__(self) -> None:
         _require(self.update in UPDATE_KINDS, f"update must be one of {UPDATE_KINDS}")
         _require(self.error in ERROR_SIDES, f"error must be one of {ERROR_SIDES}")
@@ -291,6 +298,7 @@ class EstimatorConfig:
             "mag_reference_adapt_time",
             "mag_tilt_leak_time",
             "velocity_adapt_time",
+            "smooth_accel_time",
         ):
             value = getattr(self, name)
             _require(math.isfinite(value) and value >= 0.0, f"{name} must be ≥ 0, got {value}")

@@ -133,6 +133,32 @@ class EstimateSeries:
     heading_nis: np.ndarray  # (N,)
     mag_used: np.ndarray  # (N,) bool
 
+    @classmethod
+    def empty(cls, n: int) -> EstimateSeries:
+        """A series of N estimates yet to be written (e.g. by :meth:`Estimator.update_batch`)."""
+        return cls(
+            np.empty(n),
+            np.empty((n, 4)),
+            np.empty((n, 3)),
+            np.empty((n, 6, 6)),
+            np.empty((n, 2)),
+            np.empty(n),
+            np.empty(n, dtype=bool),
+            np.empty(n, dtype=FLAGS_DTYPE),
+            np.empty(n, dtype=ITERATIONS_DTYPE),
+            np.empty(n, dtype=bool),
+            np.empty(n),
+            np.empty(n),
+            np.empty(n, dtype=bool),
+        )
+
+    def rows(self, start: int, stop: int) -> EstimateSeries:
+        """Estimates [start, stop) as views of this series' arrays (writing them writes
+        this series)."""
+        return EstimateSeries(
+            *(getattr(self, name)[start:stop] for name in self.__dataclass_fields__)
+        )
+
     def __len__(self) -> int:
         return self.t.shape[0]
 
@@ -170,6 +196,29 @@ def _series3(value: ArrayLike, n: int, name: str) -> np.ndarray:
     if array.shape != (n, 3):
         raise ValueError(f"{name} must have shape ({n}, 3), got {array.shape}")
     return array
+
+
+def batch_inputs(
+    t: ArrayLike,
+    gyro: ArrayLike,
+    accel: ArrayLike,
+    mag: ArrayLike | None = None,
+    linear_accel: ArrayLike | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A batch's inputs as :meth:`Estimator.update_batch` takes them: float64,
+    C-contiguous, ``t`` (N,) and the others (N, 3) (None stays None); ValueError
+    naming the input whose shape is wrong."""
+    t = np.ascontiguousarray(t, dtype=np.float64)
+    if t.ndim != 1:
+        raise ValueError(f"t must be one-dimensional, got shape {t.shape}")
+    n = t.shape[0]
+    return (
+        t,
+        _series3(gyro, n, "gyro"),
+        _series3(accel, n, "accel"),
+        None if mag is None else _series3(mag, n, "mag"),
+        None if linear_accel is None else _series3(linear_accel, n, "linear_accel"),
+    )
 
 
 # Samples a batch-fed estimator's update takes as batches of one before it starts its
@@ -463,6 +512,7 @@ class Estimator:
         accel: ArrayLike,
         mag: ArrayLike | None = None,
         linear_accel: ArrayLike | None = None,
+        out: EstimateSeries | None = None,
     ) -> EstimateSeries:
         """Take N samples in one compiled loop; return the estimate after each.
 
@@ -471,33 +521,21 @@ class Estimator:
         the vehicle's acceleration is not known (see :meth:`update`). An
         accelerometer in another unit is flagged (``StepFlags.ACCEL_WRONG_UNIT``),
         neither warned of nor raised (:meth:`update` warns, :func:`estimate` raises).
+        ``out``: N estimates to write the result into (e.g. ``series.rows(i, i + N)``
+        of a longer series filled a batch at a time), which is returned.
         """
-        t = np.ascontiguousarray(t, dtype=np.float64)
-        if t.ndim != 1:
-            raise ValueError(f"t must be one-dimensional, got shape {t.shape}")
+        t, gyro, accel, mag, linear_accel = batch_inputs(t, gyro, accel, mag, linear_accel)
         n = t.shape[0]
-        gyro = _series3(gyro, n, "gyro")
-        accel = _series3(accel, n, "accel")
         # one NaN row stands for "none" at every sample: an hour at 1 kHz would
         # otherwise hold 86 MB of NaN for each
         none = np.full((1, 3), np.nan)
-        mag = none if mag is None else _series3(mag, n, "mag")
-        linear_accel = none if linear_accel is None else _series3(linear_accel, n, "linear_accel")
-        out = EstimateSeries(
-            t.copy(),
-            np.empty((n, 4)),
-            np.empty((n, 3)),
-            np.empty((n, 6, 6)),
-            np.empty((n, 2)),
-            np.empty(n),
-            np.empty(n, dtype=bool),
-            np.empty(n, dtype=FLAGS_DTYPE),
-            np.empty(n, dtype=ITERATIONS_DTYPE),
-            np.empty(n, dtype=bool),
-            np.empty(n),
-            np.empty(n),
-            np.empty(n, dtype=bool),
-        )
+        mag = none if mag is None else mag
+        linear_accel = none if linear_accel is None else linear_accel
+        if out is None:
+            out = EstimateSeries.empty(n)
+        elif len(out) != n:
+            raise ValueError(f"out must hold {n} estimates, got {len(out)}")
+        out.t[:] = t
         _run_batch(
             self._state,
             self._coefficients,
@@ -538,6 +576,7 @@ def estimate(
     """
     estimator = Estimator(config)
     series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
-    if np.any(series.flags & StepFlags.ACCEL_WRONG_UNIT):
-        raise InputError(online.accel_unit_message(estimator._state))
+    problem = estimator.accel_unit_problem
+    if problem is not None and np.any(series.flags & StepFlags.ACCEL_WRONG_UNIT):
+        raise InputError(problem)
     return series

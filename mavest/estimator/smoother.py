@@ -1,7 +1,10 @@
 """Offline smoothing: each sample's attitude and bias given the whole recording.
 
 A two-filter smoother (Fraser & Potter 1969; Simon 2006, ch. 9; the design is
-docs/design.md#smoothing). The forward pass is :func:`estimate`; the backward pass is
+docs/design.md#smoothing). The forward pass is :func:`estimate` on the accelerometer
+averaged with zero phase in the gyro's strapdown frame
+(:mod:`mavest.estimator.zero_phase`, ``EstimatorConfig.smooth_accel_time``), so that
+its tilt error is less like the backward pass's; the backward pass is
 the same filter run over the time-reversed recording, in which the attitude
 kinematics read dR/ds = R[−ω]×: the gyroscope negated, accelerometer, magnetometer
 and known acceleration unchanged, so the backward filter's bias is −b. At each sample
@@ -20,13 +23,22 @@ heading are.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 from numpy.typing import ArrayLike
 
 from mavest.estimator.config import EstimatorConfig
-from mavest.estimator.estimator import EstimateSeries, Estimator, estimate
+from mavest.estimator.estimator import (
+    EstimateSeries,
+    Estimator,
+    InputError,
+    batch_inputs,
+    estimate,
+)
 from mavest.estimator.fusion import fuse_block
 from mavest.estimator.layout import StepFlags
+from mavest.estimator.zero_phase import zero_phase_blocks
 
 # Samples whose estimate is a placeholder or a held copy of an earlier one.
 _NO_ESTIMATE = StepFlags.NOT_INITIALISED | StepFlags.SKIPPED
@@ -45,6 +57,9 @@ _RESTARTS = (
 # beyond the forward estimates (the backward pass's estimates and inputs, about 0.5 kB
 # a sample), whatever the length of the recording.
 BLOCK = 1 << 13
+# Within this many time constants of a segment's ends the forward pass's accelerometer
+# goes over from the average to the sample as measured (zero_phase_blocks' taper).
+TAPER = 4.0
 
 
 def smooth(
@@ -60,14 +75,65 @@ def smooth(
     The same arguments, validation and :class:`~mavest.estimator.estimator.InputError`
     as :func:`estimate`, and the same fields and conventions in the result: ``q``,
     ``bias`` and ``cov`` smoothed; ``flags`` and the update diagnostics (innovation,
-    NIS, ``accel_used``, ...) those of the forward pass, which is :func:`estimate`'s.
+    NIS, ``accel_used``, ...) those of the forward pass, which is :func:`estimate` on
+    the averaged accelerometer (:func:`forward_accel`; with ``smooth_accel_time`` 0, or
+    a known acceleration, :func:`estimate`'s own).
     Where the forward pass has no estimate (not initialised, skipped samples) or the
     backward pass has none to fuse (see :func:`smooth_forward`), the forward estimate
     is returned unchanged.
     """
     config = config if config is not None else EstimatorConfig()
-    forward = estimate(t, gyro, accel, mag, config, linear_accel)
+    t, gyro, accel, mag, linear_accel = batch_inputs(t, gyro, accel, mag, linear_accel)
+    known = linear_accel is not None and bool(np.any(np.isfinite(linear_accel)))
+    if config.smooth_accel_time > 0.0 and not known:
+        forward = _forward_on_averaged_accel(t, gyro, accel, mag, config)
+    else:  # (a known acceleration already takes out what the average would)
+        forward = estimate(t, gyro, accel, mag, config, linear_accel)
     return smooth_forward(forward, t, gyro, accel, mag, config, linear_accel)
+
+
+def forward_accel(
+    t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, config: EstimatorConfig
+) -> np.ndarray:
+    """The accelerometer as :func:`smooth`'s forward pass takes it (without a known
+    acceleration), whole: averaged with zero phase over ``config.smooth_accel_time``,
+    or ``accel`` itself when that is 0. For a forward pass run otherwise (e.g. from a
+    known state, then given to :func:`smooth_forward`); :func:`smooth` itself takes it
+    a block at a time."""
+    if config.smooth_accel_time <= 0.0:
+        return accel
+    return np.concatenate(list(_averaged_blocks(t, gyro, accel, config)))
+
+
+def _averaged_blocks(
+    t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, config: EstimatorConfig
+) -> Iterator[np.ndarray]:
+    tau = config.smooth_accel_time
+    return zero_phase_blocks(t, gyro, accel, tau, config.max_dt, BLOCK, TAPER * tau)
+
+
+def _forward_on_averaged_accel(
+    t: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    mag: np.ndarray | None,
+    config: EstimatorConfig,
+) -> EstimateSeries:
+    """:func:`estimate` on the accelerometer low-passed with zero phase
+    (:mod:`mavest.estimator.zero_phase`), a block at a time: nothing of the
+    recording's length is held beyond the result."""
+    n = t.shape[0]
+    forward = EstimateSeries.empty(n)
+    estimator = Estimator(config)
+    averaged = _averaged_blocks(t, gyro, accel, config)
+    for lo, block in zip(range(0, n, BLOCK), averaged, strict=True):
+        hi = lo + block.shape[0]
+        part = None if mag is None else mag[lo:hi]
+        estimator.update_batch(t[lo:hi], gyro[lo:hi], block, part, out=forward.rows(lo, hi))
+    problem = estimator.accel_unit_problem
+    if problem is not None and np.any(forward.flags & StepFlags.ACCEL_WRONG_UNIT):
+        raise InputError(problem)
+    return forward
 
 
 def smooth_forward(

@@ -25,7 +25,7 @@ from mavest._jit import kernel
 from mavest.estimator.charts import chart_quat_into, local_into
 from mavest.estimator.config import CHARTS, ERROR_SIDES, EstimatorConfig
 from mavest.estimator.estimator import Estimator
-from mavest.estimator.smoother import smooth_forward
+from mavest.estimator.smoother import forward_accel, smooth_forward
 from mavest.evaluation.metrics import attitude_errors
 from mavest.sim.kinematic import ImuNoise, Motion, SimulatedImu, earth_field, simulate
 
@@ -138,7 +138,9 @@ def run_once(
     """One flight: start from a prior drawn from the covariance the filter is given.
 
     ``smoothed``: score the smoother (:func:`~mavest.estimator.smoother.smooth_forward`
-    on this forward pass) instead of the filter; the NIS stays the forward pass's.
+    on this forward pass, run on the accelerometer as the smoother's is:
+    :func:`~mavest.estimator.smoother.forward_accel`) instead of the filter; the NIS
+    stays the forward pass's.
     """
     rng = np.random.default_rng(seed)
     P0 = np.diag(
@@ -155,7 +157,10 @@ def run_once(
     estimator = Estimator(config)
     estimator.initialise(data.t[0], q0, np.zeros(3), P0)
     mag = data.mag[1:] if scenario.magnetometer else None
-    out = estimator.update_batch(data.t[1:], data.gyro[1:], data.accel[1:], mag)
+    accel = data.accel[1:]
+    if smoothed:  # the forward pass as the smoother runs it
+        accel = forward_accel(data.t[1:], data.gyro[1:], accel, config)
+    out = estimator.update_batch(data.t[1:], data.gyro[1:], accel, mag)
     nis = np.where(out.accel_used, out.nis, np.nan)
     if smoothed:
         # the backward pass starts, as the forward one, from a prior drawn around the

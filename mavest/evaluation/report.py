@@ -111,6 +111,17 @@ def stamp(command: str, day: datetime.date | None = None, machine: str | None = 
     )
 
 
+def paired(ours: Sequence[float], theirs: Sequence[float], unit: str = "°") -> str:
+    """A paired comparison per trial, as the tables say it (lower is better): "better
+    on k of n, median difference d°"."""
+    differences = sorted(a - b for a, b in zip(ours, theirs, strict=True))
+    n = len(differences)
+    middle = n // 2
+    median = differences[middle] if n % 2 else 0.5 * (differences[middle - 1] + differences[middle])
+    better = sum(d < 0 for d in differences)
+    return f"better on {better} of {n}, median difference {median:+.3f}{unit}"
+
+
 def add_results_option(parser: argparse.ArgumentParser) -> None:
     """``--results [FILE]``, the same in every tool."""
     parser.add_argument(
