@@ -138,7 +138,13 @@ def _quat(r: Rotation) -> np.ndarray:
 
 
 def slow_zero_phase(
-    t, gyro, accel, time_constant: float, max_dt: float, taper: float = 0.0
+    t,
+    gyro,
+    accel,
+    time_constant: float,
+    max_dt: float,
+    taper: float = 0.0,
+    limits: tuple[float, float] = (math.inf, math.inf),
 ) -> np.ndarray:
     """The forward pass's accelerometer, one sample at a time with scipy's rotations:
     per segment (split at intervals outside (0, max_dt] and at non-finite samples, which
@@ -147,7 +153,11 @@ def slow_zero_phase(
     1 − exp(−Δt/τ), starting from the segment's end sample) and turned back; within
     ``taper`` s of the segment's ends, blended linearly into the sample as measured."""
     out = np.array(accel, dtype=float)
-    valid = np.isfinite(t) & np.all(np.isfinite(gyro), axis=1) & np.all(np.isfinite(accel), axis=1)
+    valid = (
+        np.isfinite(t)
+        & np.all(np.abs(gyro) <= limits[0], axis=1)
+        & np.all(np.abs(accel) <= limits[1], axis=1)
+    )
     segments: list[list[int]] = []
     for k in np.flatnonzero(valid).tolist():
         if segments and segments[-1][-1] == k - 1 and 0.0 < t[k] - t[k - 1] <= max_dt:
@@ -202,7 +212,16 @@ def test_zero_phase_average_agrees_with_references_and_ignores_blocks() -> None:
     gyro[300] = np.nan
     t[500] = t[499]  # the same time again: a new segment
     t[900] = np.nan
+    gyro[1000, 2] = 40.0  # beyond the clip below
+    accel[1050, 0] = -600.0  # beyond the limit below
     expected = slow_zero_phase(t, gyro, accel, 0.7, 2.0)
+    limited = zero_phase.zero_phase_blocks(t, gyro, accel, 0.7, 2.0, 64, 0.0, 30.0, 500.0)
+    np.testing.assert_allclose(
+        np.concatenate(list(limited)),
+        slow_zero_phase(t, gyro, accel, 0.7, 2.0, 0.0, (30.0, 500.0)),
+        rtol=0,
+        atol=1e-12,
+    )
     tapered = np.concatenate(list(zero_phase.zero_phase_blocks(t, gyro, accel, 0.7, 2.0, 50, 1.5)))
     np.testing.assert_allclose(
         tapered, slow_zero_phase(t, gyro, accel, 0.7, 2.0, 1.5), rtol=0, atol=1e-12
@@ -400,6 +419,9 @@ def _damaged(kind: str):
         t[1500:] -= 100.0
     elif kind == "all_nan_accel":
         accel[:] = np.nan
+    elif kind == "absurd_values":  # finite, but no sensor's: a corrupt sample
+        accel[600] = [1e30, 0.0, 0.0]
+        gyro[1100] = [0.0, -1e30, 0.0]
     return data, t, gyro, accel, mag
 
 
@@ -413,6 +435,7 @@ def _damaged(kind: str):
         "gap",
         "restart",
         "all_nan_accel",
+        "absurd_values",
     ],
 )
 @pytest.mark.parametrize("with_mag", [False, True], ids=["6d", "9d"])
@@ -428,7 +451,7 @@ def test_bad_input_is_flagged_never_fatal(kind: str, with_mag: bool) -> None:
     # where the forward pass has no estimate the smoother has none either
     held = (forward.flags & (StepFlags.NOT_INITIALISED | StepFlags.SKIPPED)) != 0
     np.testing.assert_array_equal(out.q[held], forward.q[held])
-    if kind in ("nan", "time_back", "absurd_timestamp", "gap"):
+    if kind in ("nan", "time_back", "absurd_timestamp", "gap", "absurd_values"):
         good = ~held & np.isfinite(t)
         f = attitude_errors(forward.q[good], data.q_true[good]).inclination
         s = attitude_errors(out.q[good], data.q_true[good]).inclination

@@ -38,6 +38,10 @@ RESET_POLICIES: tuple[str, ...] = ("none", "first_order", "full")
 CHARTS: tuple[str, ...] = ("exp", "heading_tilt")
 
 STANDARD_GRAVITY = 9.80665  # m/s², the value MAVLink's mG units are defined with
+# A specific force beyond this on any axis is a broken sensor or a corrupt packet, never
+# flight (IMUs range to ±16 or ±32 g): the service drops such samples, and the
+# smoother's average of the accelerometer leaves them out.
+MAX_SPECIFIC_FORCE = 50.0 * STANDARD_GRAVITY  # m/s²
 
 
 class ConfigError(ValueError):

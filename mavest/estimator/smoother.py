@@ -28,7 +28,7 @@ from collections.abc import Iterator
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mavest.estimator.config import EstimatorConfig
+from mavest.estimator.config import MAX_SPECIFIC_FORCE, EstimatorConfig
 from mavest.estimator.estimator import (
     EstimateSeries,
     Estimator,
@@ -109,7 +109,9 @@ def _averaged_blocks(
     t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, config: EstimatorConfig
 ) -> Iterator[np.ndarray]:
     tau = config.smooth_accel_time
-    return zero_phase_blocks(t, gyro, accel, tau, config.max_dt, BLOCK, TAPER * tau)
+    return zero_phase_blocks(
+        t, gyro, accel, tau, config.max_dt, BLOCK, TAPER * tau, config.gyro_clip, MAX_SPECIFIC_FORCE
+    )
 
 
 def _forward_on_averaged_accel(

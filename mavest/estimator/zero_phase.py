@@ -10,10 +10,13 @@ correction), low-passed there by a first-order exponential average run backward 
 then forward over the segment (zero phase, each step's weight from its own interval:
 1 − exp(−Δt/τ)), and turned back into the body frame.
 
-A segment is a run of samples with finite time, gyro and accelerometer whose
-intervals are in (0, ``max_dt``]: a gap, a step back in time or a non-finite sample
-ends it, and such a sample is passed through as it is (the filter flags it). The
-averages start at each end of a segment from its sample there.
+A segment is a run of samples to average whose intervals are in (0, ``max_dt``]: a
+gap, a step back in time or a sample not to average ends it (a time, gyro or
+accelerometer reading not finite, a gyro axis beyond the filter's clip, whose missed
+rotation would turn the frame, an accelerometer axis beyond any sensor's range, which
+the average would spread over seconds), and such a sample is passed through as it is
+(the filter flags it). The averages start at each end of a segment from its sample
+there.
 
 The recording is taken in blocks in time order and nothing of length N is held:
 the strapdown attitude at each block's start and the backward average's state at
@@ -32,11 +35,20 @@ from mavest._jit import inplace_kernel
 
 
 @inplace_kernel
-def _valid(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, k: int) -> bool:
+def _valid(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, k: int, limits: np.ndarray) -> bool:
+    """Whether sample k is one to average: its time finite, each gyro axis within
+    ``limits[1]`` (a clipped gyro missed a rotation) and each accelerometer axis within
+    ``limits[2]`` (a reading beyond is a broken sensor or packet, which an average would
+    spread over seconds). (NaN fails every comparison.)"""
+    gyro_limit, accel_limit = limits[1], limits[2]
     return (
         math.isfinite(t[k])
-        and math.isfinite(gyro[k, 0] + gyro[k, 1] + gyro[k, 2])
-        and math.isfinite(accel[k, 0] + accel[k, 1] + accel[k, 2])
+        and abs(gyro[k, 0]) <= gyro_limit
+        and abs(gyro[k, 1]) <= gyro_limit
+        and abs(gyro[k, 2]) <= gyro_limit
+        and abs(accel[k, 0]) <= accel_limit
+        and abs(accel[k, 1]) <= accel_limit
+        and abs(accel[k, 2]) <= accel_limit
     )
 
 
@@ -58,7 +70,7 @@ def _strapdown(
     t: np.ndarray,
     gyro: np.ndarray,
     accel: np.ndarray,
-    max_dt: float,
+    limits: np.ndarray,
     lo: int,
     hi: int,
     q: np.ndarray,
@@ -68,12 +80,12 @@ def _strapdown(
     (the attitude before sample lo), which is left at the last one's. A segment's first
     sample is the identity; an invalid sample keeps the attitude before it."""
     w, x, y, z = q[0], q[1], q[2], q[3]
-    previous_valid = lo > 0 and _valid(t, gyro, accel, lo - 1)
+    previous_valid = lo > 0 and _valid(t, gyro, accel, lo - 1, limits)
     for k in range(lo, hi):
-        valid = _valid(t, gyro, accel, k)
+        valid = _valid(t, gyro, accel, k, limits)
         if valid:
             dt = t[k] - t[k - 1] if k > 0 else 0.0
-            if previous_valid and 0.0 < dt <= max_dt:
+            if previous_valid and 0.0 < dt <= limits[0]:
                 # the step's quaternion exp(½ ω dt), its series exact in double precision
                 # below 0.01 rad (1 kHz at 10 rad/s)
                 px, py, pz = gyro[k, 0] * dt, gyro[k, 1] * dt, gyro[k, 2] * dt
@@ -112,7 +124,7 @@ def _checkpoints(
     t: np.ndarray,
     gyro: np.ndarray,
     accel: np.ndarray,
-    max_dt: float,
+    limits: np.ndarray,
     block: int,
     rows: np.ndarray,
     out: np.ndarray,
@@ -126,7 +138,7 @@ def _checkpoints(
         for i in range(4):
             out[j + 1, i] = out[j, i]
         lo = j * block
-        _strapdown(t, gyro, accel, max_dt, lo, min(lo + block, n), out[j + 1], rows)
+        _strapdown(t, gyro, accel, limits, lo, min(lo + block, n), out[j + 1], rows)
 
 
 @inplace_kernel
@@ -143,7 +155,7 @@ def _backward(
     t: np.ndarray,
     gyro: np.ndarray,
     accel: np.ndarray,
-    max_dt: float,
+    limits: np.ndarray,
     time_constant: float,
     lo: int,
     hi: int,
@@ -158,9 +170,9 @@ def _backward(
     from ``state`` (the average and that time at sample hi), which is left at sample
     lo's."""
     n = t.shape[0]
-    next_valid = hi < n and _valid(t, gyro, accel, hi)
+    next_valid = hi < n and _valid(t, gyro, accel, hi, limits)
     for k in range(hi - 1, lo - 1, -1):
-        valid = _valid(t, gyro, accel, k)
+        valid = _valid(t, gyro, accel, k, limits)
         if valid:
             r = k - lo
             _rotate(
@@ -168,7 +180,7 @@ def _backward(
                 accel[k, 0], accel[k, 1], accel[k, 2], out, r,
             )  # fmt: skip
             dt = t[k + 1] - t[k] if k + 1 < n else 0.0
-            if next_valid and 0.0 < dt <= max_dt:
+            if next_valid and 0.0 < dt <= limits[0]:
                 weight = _weight(dt, time_constant, last)
                 for i in range(3):
                     state[i] += weight * (out[r, i] - state[i])
@@ -187,7 +199,7 @@ def _forward(
     t: np.ndarray,
     gyro: np.ndarray,
     accel: np.ndarray,
-    max_dt: float,
+    limits: np.ndarray,
     time_constant: float,
     lo: int,
     hi: int,
@@ -204,9 +216,9 @@ def _forward(
     turned back into the body frame into ``out``; invalid samples as they are. Within
     ``taper`` s of the segment's ends (``end``: its last time) the sample as measured
     takes over, linearly: there the average would be one-sided, so lag or lead."""
-    previous_valid = lo > 0 and _valid(t, gyro, accel, lo - 1)
+    previous_valid = lo > 0 and _valid(t, gyro, accel, lo - 1, limits)
     for k in range(lo, hi):
-        valid = _valid(t, gyro, accel, k)
+        valid = _valid(t, gyro, accel, k, limits)
         r = k - lo
         if not valid:
             for i in range(3):
@@ -214,7 +226,7 @@ def _forward(
             previous_valid = False
             continue
         dt = t[k] - t[k - 1] if k > 0 else 0.0
-        if previous_valid and 0.0 < dt <= max_dt:
+        if previous_valid and 0.0 < dt <= limits[0]:
             weight = _weight(dt, time_constant, last)
             for i in range(3):
                 state[i] += weight * (backward[r, i] - state[i])
@@ -243,16 +255,21 @@ def zero_phase_blocks(
     max_dt: float,
     block: int,
     taper: float = 0.0,
+    gyro_limit: float = math.inf,
+    accel_limit: float = math.inf,
 ) -> Iterator[np.ndarray]:
     """The accelerometer low-passed with zero phase (time constant ``time_constant`` s;
-    segments split at intervals beyond ``max_dt``), as (≤ block, 3) arrays of samples
-    [0, block), [block, 2·block), … in turn. ``t`` (N,), ``gyro`` and ``accel`` (N, 3)
-    float64 arrays, the inputs :func:`~mavest.estimator.estimate` takes."""
+    segments split at intervals beyond ``max_dt`` and at samples not to average: not
+    finite, or a gyro axis beyond ``gyro_limit`` or an accelerometer axis beyond
+    ``accel_limit``), as (≤ block, 3) arrays of samples [0, block), [block, 2·block), …
+    in turn. ``t`` (N,), ``gyro`` and ``accel`` (N, 3) float64 arrays, the inputs
+    :func:`~mavest.estimator.estimate` takes; ``taper``: see :func:`_forward`."""
+    limits = np.array([max_dt, gyro_limit, accel_limit])
     n = t.shape[0]
     blocks = -(-n // block)
     attitude = np.empty((block, 4))
     starts = np.empty((max(blocks, 1), 4))
-    _checkpoints(t, gyro, accel, max_dt, block, attitude, starts)
+    _checkpoints(t, gyro, accel, limits, block, attitude, starts)
     # the backward average and its segment's last time at each block's end (at the
     # next block's first sample)
     ends = np.zeros((blocks + 1, 4))
@@ -262,22 +279,22 @@ def zero_phase_blocks(
     state = np.zeros(4)
     for j in range(blocks - 1, -1, -1):
         lo, hi = j * block, min((j + 1) * block, n)
-        _strapdown(t, gyro, accel, max_dt, lo, hi, starts[j].copy(), attitude)
+        _strapdown(t, gyro, accel, limits, lo, hi, starts[j].copy(), attitude)
         _backward(
-            t, gyro, accel, max_dt, time_constant, lo, hi, attitude, state, averaged, end, last
+            t, gyro, accel, limits, time_constant, lo, hi, attitude, state, averaged, end, last
         )
         ends[j] = state
     forward_state = np.zeros(4)
     for j in range(blocks):
         lo, hi = j * block, min((j + 1) * block, n)
-        _strapdown(t, gyro, accel, max_dt, lo, hi, starts[j].copy(), attitude)
+        _strapdown(t, gyro, accel, limits, lo, hi, starts[j].copy(), attitude)
         state = ends[j + 1].copy()
         _backward(
-            t, gyro, accel, max_dt, time_constant, lo, hi, attitude, state, averaged, end, last
+            t, gyro, accel, limits, time_constant, lo, hi, attitude, state, averaged, end, last
         )
         out = np.empty((hi - lo, 3))
         _forward(
-            t, gyro, accel, max_dt, time_constant, lo, hi, attitude, averaged, end, taper,
+            t, gyro, accel, limits, time_constant, lo, hi, attitude, averaged, end, taper,
             forward_state, out, last,
         )  # fmt: skip
         yield out
