@@ -2,13 +2,13 @@
 
 A recording can be filtered forward and backward: the specific force's linear
 acceleration then averages away with no delay, which a causal low-pass (the filter's
-own, :mod:`mavest.estimator.lowpass`) cannot do (Laidig & Seel 2023 do the same in
-their offline VQF). The average is taken in the gyro's strapdown frame, in which
-gravity holds still while the body turns: each sample's specific force is turned by
-the attitude integrated from the gyro alone since its segment began (no bias, no
-correction), low-passed there by a first-order exponential average run backward and
-then forward over the segment (zero phase, each step's weight from its own interval:
-1 − exp(−Δt/τ)), and turned back into the body frame.
+own, :mod:`mavest.estimator.lowpass`) cannot do (Laidig & Seel 2023's offline VQF
+averages alike, with a Butterworth filter). The average is taken in the gyro's
+strapdown frame, in which gravity holds still while the body turns: each sample's
+specific force is turned by the attitude integrated from the gyro alone since its
+segment began (no bias, no correction), low-passed there by a first-order exponential
+average run backward and then forward over the segment (zero phase, each step's weight
+from its own interval: 1 − exp(−Δt/τ)), and turned back into the body frame.
 
 A segment is a run of samples to average whose intervals are in (0, ``max_dt``]: a
 gap, a step back in time or a sample not to average ends it (a time, gyro or
