@@ -149,7 +149,9 @@ def smooth_forward(
     backward_start: tuple[ArrayLike, ArrayLike, ArrayLike] | None = None,
 ) -> EstimateSeries:
     """Smooth a forward pass already run over these samples with this configuration
-    (e.g. one started from a known state with :meth:`Estimator.initialise`).
+    (e.g. one started from a known state with :meth:`Estimator.initialise`; on
+    :func:`forward_accel`'s accelerometer, as :func:`smooth`'s is, or on the samples as
+    measured). ``accel`` is what the backward pass takes: the samples as measured.
 
     ``forward``'s q, bias and cov arrays are overwritten with the smoothed ones (a
     recording's estimates are most of what smoothing holds in memory; this way it
