@@ -16,8 +16,8 @@ call it from the event loop.
 
 Where each rule is written, once: a function (here unless named) that takes one
 sample's numbers or a block's arrays alike, which the replay's fast path
-(:mod:`mavest.service.bulk`) calls as the pipeline does; what that path still
-states again on its arrays is listed in its own docstring.
+(:mod:`mavest.service.bulk`) calls as the pipeline does; how that path holds the
+pipeline's state across a block is in its own docstring.
 
 =========================================  =========================================
 which stream an IMU sample goes to         :meth:`Pipeline.route_imu`
