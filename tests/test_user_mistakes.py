@@ -625,6 +625,9 @@ def test_an_accelerometer_in_g_is_one_line_and_counted(
     assert not stream.estimator.initialised
     summary = report.summary()
     assert f"{stream.stats.accel_wrong_unit} samples with no attitude" in summary
+    # its magnetometer readings were not taken into an attitude it did not have
+    assert stream.stats.mag_usable == 600 and stream.stats.mag_taken == 0
+    assert "heading free (6-D): none of the 600 usable magnetometer readings taken" in summary
     # no attitude, so none said to the vehicle (not the level one the filter starts from)
     assert stream.stats.answered == 0
     assert "600 samples over 3.0 s at 200.0 Hz, 0 answered" in summary

@@ -1173,11 +1173,12 @@ def count_estimated(stats: StreamStats, flags: Any, mag_usable: Any, mag_used: A
     """Count estimated steps: one step's flags and whether its sample had a usable
     magnetometer reading and the step used it, or a block's arrays of them. A reading
     is taken unless the step set it aside or it came between the magnetometer's
-    updates (MAG_NOT_TAKEN); the GPS-aided ones had the vehicle's acceleration removed
-    (ACCEL_AIDED)."""
+    updates (MAG_NOT_TAKEN), or the filter had no attitude to take it into
+    (NOT_INITIALISED: an accelerometer it cannot start on); the GPS-aided ones had
+    the vehicle's acceleration removed (ACCEL_AIDED)."""
     stats.estimated += 1 if isinstance(mag_usable, bool) else len(mag_usable)
     stats.gps_aided += _count((flags & StepFlags.ACCEL_AIDED) != 0)
-    taken = mag_usable & ((flags & MAG_NOT_TAKEN) == 0)
+    taken = mag_usable & ((flags & (MAG_NOT_TAKEN | StepFlags.NOT_INITIALISED)) == 0)
     stats.mag_usable += _count(mag_usable)
     stats.mag_taken += _count(taken)
     stats.mag_used += _count(taken & mag_used)

@@ -902,6 +902,11 @@ def format_summary(report: RunReport) -> str:
                 f"    heading from the magnetometer (9-D): {used:.1f} % used of the "
                 f"{stats.mag_taken} readings taken (of {stats.mag_usable} usable)"
             )
+        elif stats.mag_usable:
+            lines.append(
+                f"    heading free (6-D): none of the {stats.mag_usable} usable magnetometer "
+                "readings taken"
+            )
         else:
             lines.append("    no magnetometer: heading free (6-D), yaw drifts")
         aided = [
