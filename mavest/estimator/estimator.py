@@ -576,7 +576,14 @@ def estimate(
     """
     estimator = Estimator(config)
     series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
+    refuse_wrong_unit(estimator, series)
+    return series
+
+
+def refuse_wrong_unit(estimator: Estimator, series: EstimateSeries) -> None:
+    """:class:`InputError` if the estimator's samples in ``series`` were flagged with an
+    accelerometer in another unit (``StepFlags.ACCEL_WRONG_UNIT``): it never started on
+    them, and a recording's estimate would be all placeholders."""
     problem = estimator.accel_unit_problem
     if problem is not None and np.any(series.flags & StepFlags.ACCEL_WRONG_UNIT):
         raise InputError(problem)
-    return series

@@ -32,9 +32,9 @@ from mavest.estimator.config import MAX_SPECIFIC_FORCE, EstimatorConfig
 from mavest.estimator.estimator import (
     EstimateSeries,
     Estimator,
-    InputError,
     batch_inputs,
     estimate,
+    refuse_wrong_unit,
 )
 from mavest.estimator.fusion import fuse_block
 from mavest.estimator.layout import StepFlags
@@ -84,12 +84,16 @@ def smooth(
     """
     config = config if config is not None else EstimatorConfig()
     t, gyro, accel, mag, linear_accel = batch_inputs(t, gyro, accel, mag, linear_accel)
-    known = linear_accel is not None and bool(np.any(np.isfinite(linear_accel)))
-    if config.smooth_accel_time > 0.0 and not known:
+    if config.smooth_accel_time > 0.0 and not _any_known(linear_accel):
         forward = _forward_on_averaged_accel(t, gyro, accel, mag, config)
     else:  # (a known acceleration already takes out what the average would)
         forward = estimate(t, gyro, accel, mag, config, linear_accel)
     return smooth_forward(forward, t, gyro, accel, mag, config, linear_accel)
+
+
+def _any_known(linear_accel: np.ndarray | None) -> bool:
+    """Whether the vehicle's acceleration is known at any sample."""
+    return linear_accel is not None and bool(np.any(np.isfinite(linear_accel)))
 
 
 def forward_accel(
@@ -132,9 +136,7 @@ def _forward_on_averaged_accel(
         hi = lo + block.shape[0]
         part = None if mag is None else mag[lo:hi]
         estimator.update_batch(t[lo:hi], gyro[lo:hi], block, part, out=forward.rows(lo, hi))
-    problem = estimator.accel_unit_problem
-    if problem is not None and np.any(forward.flags & StepFlags.ACCEL_WRONG_UNIT):
-        raise InputError(problem)
+    refuse_wrong_unit(estimator, forward)
     return forward
 
 
@@ -185,7 +187,7 @@ def smooth_forward(
     heading_known = (forward.flags & StepFlags.HEADING_ALIGNED) != 0
     forward_heading = np.logical_or.accumulate(heading_known | forward.mag_used)
     backward = Estimator(config.replace(initial_bias=tuple(-np.asarray(config.initial_bias))))
-    if backward_start is None and linear is not None and np.any(np.isfinite(linear)):
+    if backward_start is None and _any_known(linear):
         # The known acceleration is in the world frame: removing it needs the heading,
         # which a pass aligned on one sample has not (0, where the forward pass's came
         # from the aiding itself). The backward pass starts at the forward pass's last

@@ -53,6 +53,13 @@ def _valid(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, k: int, limits: n
 
 
 @inplace_kernel
+def _joined(t: np.ndarray, k: int, both_valid: bool, limits: np.ndarray) -> bool:
+    """Whether sample k continues sample k − 1's segment (``both_valid``: both are to
+    average): its interval in (0, ``limits[0]``]. (NaN fails.)"""
+    return both_valid and 0.0 < t[k] - t[k - 1] <= limits[0]
+
+
+@inplace_kernel
 def _rotate(
     w: float, x: float, y: float, z: float, vx: float, vy: float, vz: float, out: np.ndarray, k: int
 ) -> None:
@@ -84,8 +91,8 @@ def _strapdown(
     for k in range(lo, hi):
         valid = _valid(t, gyro, accel, k, limits)
         if valid:
-            dt = t[k] - t[k - 1] if k > 0 else 0.0
-            if previous_valid and 0.0 < dt <= limits[0]:
+            if _joined(t, k, previous_valid, limits):
+                dt = t[k] - t[k - 1]
                 # the step's quaternion exp(½ ω dt), its series exact in double precision
                 # below 0.01 rad (1 kHz at 10 rad/s)
                 px, py, pz = gyro[k, 0] * dt, gyro[k, 1] * dt, gyro[k, 2] * dt
@@ -179,9 +186,8 @@ def _backward(
                 attitude[r, 0], attitude[r, 1], attitude[r, 2], attitude[r, 3],
                 accel[k, 0], accel[k, 1], accel[k, 2], out, r,
             )  # fmt: skip
-            dt = t[k + 1] - t[k] if k + 1 < n else 0.0
-            if next_valid and 0.0 < dt <= limits[0]:
-                weight = _weight(dt, time_constant, last)
+            if next_valid and _joined(t, k + 1, True, limits):
+                weight = _weight(t[k + 1] - t[k], time_constant, last)
                 for i in range(3):
                     state[i] += weight * (out[r, i] - state[i])
             else:  # the segment's last sample
@@ -225,9 +231,8 @@ def _forward(
                 out[r, i] = accel[k, i]
             previous_valid = False
             continue
-        dt = t[k] - t[k - 1] if k > 0 else 0.0
-        if previous_valid and 0.0 < dt <= limits[0]:
-            weight = _weight(dt, time_constant, last)
+        if _joined(t, k, previous_valid, limits):
+            weight = _weight(t[k] - t[k - 1], time_constant, last)
             for i in range(3):
                 state[i] += weight * (backward[r, i] - state[i])
         else:  # the segment's first sample

@@ -21,6 +21,7 @@ import os
 import platform
 import re
 import shlex
+import statistics
 import sys
 from collections.abc import Iterator, Sequence
 from importlib import metadata
@@ -114,12 +115,10 @@ def stamp(command: str, day: datetime.date | None = None, machine: str | None = 
 def paired(ours: Sequence[float], theirs: Sequence[float], unit: str = "°") -> str:
     """A paired comparison per trial, as the tables say it (lower is better): "better
     on k of n, median difference d°"."""
-    differences = sorted(a - b for a, b in zip(ours, theirs, strict=True))
-    n = len(differences)
-    middle = n // 2
-    median = differences[middle] if n % 2 else 0.5 * (differences[middle - 1] + differences[middle])
+    differences = [a - b for a, b in zip(ours, theirs, strict=True)]
     better = sum(d < 0 for d in differences)
-    return f"better on {better} of {n}, median difference {median:+.3f}{unit}"
+    median = statistics.median(differences)
+    return f"better on {better} of {len(differences)}, median difference {median:+.3f}{unit}"
 
 
 def add_results_option(parser: argparse.ArgumentParser) -> None:

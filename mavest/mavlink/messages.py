@@ -194,13 +194,17 @@ def imu_stream(message: Any) -> tuple[StreamKey, bool]:
 def decode_imu(message: Any) -> ImuSample | None:
     """The IMU sample in an IMU message; None for other messages or a HIGHRES_IMU
     whose ``fields_updated`` says gyro or accelerometer are not fresh."""
-    name = message._type
-    fmt = IMU_FORMATS.get(name)
-    if fmt is None:
+    if message._type not in IMU_FORMATS:
         return None
     key, fresh = imu_stream(message)
-    if not fresh:
-        return None
+    return imu_sample(message, key) if fresh else None
+
+
+def imu_sample(message: Any, key: StreamKey) -> ImuSample:
+    """The sample in an IMU message of stream ``key`` whose gyro and accelerometer are
+    fresh (:func:`imu_stream` gave both)."""
+    name = message._type
+    fmt = IMU_FORMATS[name]
     mag_fresh = name != "HIGHRES_IMU" or all_fresh(message.fields_updated, HIGHRES_MAG_BITS)
     a, g, m = fmt.accel_scale, fmt.gyro_scale, fmt.mag_scale
     gx, gy, gz = message.xgyro, message.ygyro, message.zgyro

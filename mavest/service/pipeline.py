@@ -77,8 +77,8 @@ from mavest.mavlink.messages import (
     ImuSample,
     MAVLink,
     StreamKey,
-    decode_imu,
     ftp_opcode,
+    imu_sample,
     imu_stream,
     is_mavlink1,
     mavlink2,
@@ -479,8 +479,7 @@ class Pipeline:
             return
         if route is ImuRoute.PASSED_BY:
             return
-        sample = decode_imu(message)
-        assert sample is not None  # (fresh)
+        sample = imu_sample(message, key)
         if stream is None:
             stream = self._new_stream(key)
             if stream is None:
