@@ -18,15 +18,17 @@ def made() -> dict[str, str]:
 
 def test_every_golden_file_is_computed() -> None:
     committed = {path.name for path in golden.GOLDEN.glob("*.csv")}
-    names = {f"estimate_{v.name}.csv" for v in golden.VARIANTS}
-    assert committed == names | {"replay_attitude.csv", "replay_estimates.csv"}
+    assert committed == set(NAMES)
 
 
-@pytest.mark.parametrize(
-    "name",
+NAMES = (
     [f"estimate_{v.name}.csv" for v in golden.VARIANTS]
-    + ["replay_attitude.csv", "replay_estimates.csv"],
+    + [f"smooth_{v.name}.csv" for v in golden.SMOOTHED]
+    + ["replay_attitude.csv", "replay_estimates.csv"]
 )
+
+
+@pytest.mark.parametrize("name", NAMES)
 def test_outputs_are_the_committed_ones(made: dict[str, str], name: str) -> None:
     difference = golden.compare(name, (golden.GOLDEN / name).read_text(), made[name])
     assert difference.same, (

@@ -15,6 +15,8 @@ change it. The outputs, CSV to be read in a diff:
   (decoded by pymavlink) for each of :data:`VARIANTS` (6-D and 9-D, each update kind,
   the right error), every :data:`EVERY`-th sample and the last: q, bias, the covariance's upper
   triangle, the flags, and the gravity update's NIS;
+- ``smooth_<variant>.csv``: :func:`mavest.smooth` alike, for each of
+  :data:`SMOOTHED` (its flags and NIS are its forward pass's);
 - ``replay_attitude.csv``: the ATTITUDE and ATTITUDE_QUATERNION messages that
   ``mavest replay flight.tlog --out-tlog OUT`` writes (decoded by pymavlink);
 - ``replay_estimates.csv``: its ``--estimates`` table;
@@ -36,6 +38,7 @@ import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pymavlink import mavutil
@@ -72,6 +75,7 @@ VARIANTS = (
     Variant("6d_sigma_point", EstimatorConfig(update="sigma_point"), mag=False),
     Variant("9d_right_error", EstimatorConfig(error="right", chart="exp"), mag=True),
 )
+SMOOTHED = VARIANTS[:2]  # the smoother's own rules show in the default configuration
 
 
 def write_input() -> str:
@@ -117,9 +121,14 @@ def _number(value: float | int | np.generic) -> str:
     return repr(float(value))  # shortest text that reads back as the same double
 
 
-def estimate_csv(variant: Variant, inputs: tuple[np.ndarray, ...]) -> str:
+def estimate_csv(
+    variant: Variant,
+    inputs: tuple[np.ndarray, ...],
+    estimator: Callable[..., Any] = mavest.estimate,
+) -> str:
+    """``estimator`` (:func:`mavest.estimate` or :func:`mavest.smooth`) on the inputs."""
     t, gyro, accel, mag = inputs
-    series = mavest.estimate(t, gyro, accel, mag if variant.mag else None, variant.config)
+    series = estimator(t, gyro, accel, mag if variant.mag else None, variant.config)
     keep = np.unique(np.r_[np.arange(0, len(series), EVERY), len(series) - 1])
     upper = np.triu_indices(6)
     cov = series.cov[keep][:, upper[0], upper[1]]
@@ -174,6 +183,7 @@ def outputs() -> dict[str, str]:
     """Every golden file's expected text, computed by this mavest."""
     inputs = imu_arrays(FLIGHT)
     made = {f"estimate_{v.name}.csv": estimate_csv(v, inputs) for v in VARIANTS}
+    made.update({f"smooth_{v.name}.csv": estimate_csv(v, inputs, mavest.smooth) for v in SMOOTHED})
     made.update(replay_outputs(FLIGHT))
     return made
 
