@@ -17,9 +17,9 @@ whose gyro noise has no part ∝ the rate, so it errs safe there. "ok": the whol
 Consistency section of docs/results.md (or FILE).
 
 --smooth: the smoother (mavest.smooth) instead, on the default configuration: the
-filter and the smoothed estimate on the same flights, the backward pass started,
-as the forward one, from a prior drawn around the truth; --results writes them as
-the Smoothing consistency section.
+filter and the smoothed estimate on the same flights, the forward pass started from a
+prior drawn around the truth and the backward pass, as mavest.smooth starts it, from
+the forward pass's end; --results writes them as the Smoothing consistency section.
 """
 
 from __future__ import annotations

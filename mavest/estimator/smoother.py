@@ -7,7 +7,8 @@ averaged with zero phase in the gyro's strapdown frame
 its tilt error is less like the backward pass's; the backward pass is
 the same filter run over the time-reversed recording, in which the attitude
 kinematics read dR/ds = R[−ω]×: the gyroscope negated, accelerometer, magnetometer
-and known acceleration unchanged, so the backward filter's bias is −b. At each sample
+and known acceleration unchanged, so the backward filter's bias is −b. It starts at
+the forward pass's last attitude with the configured initial uncertainty. At each sample
 the forward estimate (after that sample's update) is updated with the backward
 filter's *prior* attitude there (before that sample's update: its estimate one sample
 later in time, predicted one gyro step back), so that no sample's measurement counts
@@ -16,7 +17,7 @@ its correlation with the attitude (fusing the biases too is better on simulated
 flights, whose noise is the filter's model, and worse on BROAD's real recordings).
 
 Without a referenced heading in both passes (6-D), heading is not observed and the
-backward pass's heading is an arbitrary frame of its own: it is turned onto the
+backward pass's heading drifts apart from the forward one's: it is turned onto the
 forward heading and only its tilt is used. With both referenced (9-D) tilt and
 heading are.
 """
@@ -157,11 +158,12 @@ def smooth_forward(
 
     ``forward``'s q, bias and cov arrays are overwritten with the smoothed ones (a
     recording's estimates are most of what smoothing holds in memory; this way it
-    holds them once) and it is returned. ``backward_start``: (q, bias, cov) known at
-    the time of the forward pass's last estimate (as :meth:`Estimator.initialise`
-    takes them, bias and cov in the forward sense), from which the backward pass starts
-    instead of aligning on that sample; its own measurements are then not used
-    backward. With ``linear_accel`` it starts so from the forward pass's last attitude.
+    holds them once) and it is returned. The backward pass starts at the time of the
+    forward pass's last estimate from ``backward_start``, (q, bias, cov) as
+    :meth:`Estimator.initialise` takes them (bias and cov in the forward sense); by
+    default from the forward pass's last attitude, the configured initial bias and the
+    configured initial uncertainty. The measurements of that sample are not used
+    backward.
 
     A sample is fused where the forward pass has an estimate and the backward pass a
     prior: not where either has none (not initialised, skipped), nor where the
@@ -187,22 +189,24 @@ def smooth_forward(
     heading_known = (forward.flags & StepFlags.HEADING_ALIGNED) != 0
     forward_heading = np.logical_or.accumulate(heading_known | forward.mag_used)
     backward = Estimator(config.replace(initial_bias=tuple(-np.asarray(config.initial_bias))))
-    if backward_start is None and _any_known(linear):
-        # The known acceleration is in the world frame: removing it needs the heading,
-        # which a pass aligned on one sample has not (0, where the forward pass's came
-        # from the aiding itself). The backward pass starts at the forward pass's last
-        # attitude instead, with the configured initial uncertainty: its value is
-        # taken, not its certainty, and only tilt is fused without a magnetometer.
+    if backward_start is None:
+        # The backward pass starts at the forward pass's last attitude, with the
+        # configured initial uncertainty: its value is taken, not its certainty (and
+        # without a magnetometer only its tilt is fused). Aligned on its first sample
+        # instead, as the filter aligns, a recording that ends in motion left it at the
+        # mercy of that sample's linear acceleration: 135° off in tilt on a simulated
+        # flight, where it then stayed wrong with a small σ and made the smoothed
+        # attitude worse than the filter's. A known acceleration is removed in the
+        # world frame, which needs the heading from the start as well.
         initial = np.diag(
             [config.initial_tilt_sigma**2] * 2
             + [config.initial_heading_sigma**2]
             + [config.initial_bias_sigma**2] * 3
         )
         backward_start = (forward.q[last], np.asarray(config.initial_bias), initial)
-    if backward_start is not None:
-        q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
-        flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
-        backward.initialise(0.0, q0, -b0, flip @ P0 @ flip)
+    q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
+    flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
+    backward.initialise(0.0, q0, -b0, flip @ P0 @ flip)
     right = config.error == "right"
     backward_heading = False
     # the backward estimate at the sample after the block (its next block's first)

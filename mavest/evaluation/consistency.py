@@ -162,22 +162,8 @@ def run_once(
         accel = forward_accel(data.t[1:], data.gyro[1:], accel, config)
     out = estimator.update_batch(data.t[1:], data.gyro[1:], accel, mag)
     nis = np.where(out.accel_used, out.nis, np.nan)
-    if smoothed:
-        # the backward pass starts, as the forward one, from a prior drawn around the
-        # truth (at the last sample; aligning on one sample would be at the mercy of
-        # that sample's linear acceleration)
-        delta = rng.multivariate_normal(np.zeros(3), P0[:3, :3])
-        chart_quat_into(delta, chart_index, error_rotation)
-        q_end = so3.quat_multiply(so3.quat_conjugate(error_rotation), data.q_true[-1])
-        out = smooth_forward(
-            out,
-            data.t[1:],
-            data.gyro[1:],
-            data.accel[1:],
-            mag,
-            config,
-            backward_start=(q_end, np.zeros(3), P0),
-        )
+    if smoothed:  # the backward pass as the smoother starts it: from the forward one's end
+        out = smooth_forward(out, data.t[1:], data.gyro[1:], data.accel[1:], mag, config)
     e = _errors(
         data.q_true[1:],
         data.bias_true[1:],
