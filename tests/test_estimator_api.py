@@ -313,6 +313,23 @@ def test_initialise_and_reset() -> None:
         est.initialise(0.0, q, cov=-np.eye(6))
 
 
+@pytest.mark.parametrize("heading_known", [True, False])
+def test_initialise_with_the_heading_to_be_set_by_the_magnetometer(heading_known: bool) -> None:
+    """Given as known, a heading 0.6 rad off is corrected by the field; not known (as the
+    smoother's backward pass starts), the first field reading sets it."""
+    est = Estimator()
+    q = np.array([math.cos(0.3), 0.0, 0.0, math.sin(0.3)])  # yaw 0.6 rad
+    est.initialise(1.0, q, heading_known=heading_known)
+    field = [20.0, 0.0, 45.0]  # µT, level and facing north: yaw 0
+    e = est.update(1.01, [0.0, 0.0, 0.0], [0.0, 0.0, -G], field)
+    aligned = bool(e.flags & StepFlags.HEADING_ALIGNED)
+    assert aligned is not heading_known
+    if heading_known:
+        assert e.euler[2] > 0.3
+    else:
+        assert e.euler[2] == pytest.approx(0.0, abs=1e-6)
+
+
 def test_restoring_a_snapshot_undoes_the_updates_since(online_path: str) -> None:
     """What a replay does when a batch ran past a sample whose step changes the next
     inputs: back to the snapshot, the same samples give the same estimates again, and

@@ -277,14 +277,17 @@ def slow_smooth(t, gyro, accel, mag, config: EstimatorConfig):
     t_last = t[last]
     back_config = config.replace(initial_bias=tuple(-np.asarray(config.initial_bias)))
     # the backward pass starts at the forward pass's last attitude, with the configured
-    # initial uncertainty (diagonal: the bias's change of sign leaves it as it is)
+    # initial uncertainty (diagonal: the bias's change of sign leaves it as it is); its
+    # own magnetometer sets its heading
     initial = np.diag(
         [config.initial_tilt_sigma**2] * 2
         + [config.initial_heading_sigma**2]
         + [config.initial_bias_sigma**2] * 3
     )
     backward = Estimator(back_config)
-    backward.initialise(0.0, forward.q[last], -np.asarray(config.initial_bias), initial)
+    backward.initialise(
+        0.0, forward.q[last], -np.asarray(config.initial_bias), initial, heading_known=False
+    )
     rev = np.arange(n - 1, -1, -1)
     back = backward.update_batch(
         t_last - t[rev],

@@ -344,6 +344,7 @@ class Estimator:
         q: ArrayLike,
         bias: ArrayLike | None = None,
         cov: ArrayLike | None = None,
+        heading_known: bool = True,
     ) -> None:
         """Start from a known state instead of aligning on the first sample.
 
@@ -351,7 +352,9 @@ class Estimator:
         (R_true = Exp(δθ) R); it is converted to the configured error's frame.
         Default: the configured initial covariance. The next sample at a time
         after ``t`` is the first step. The heading counts as known: a
-        magnetometer then corrects it instead of setting it afresh.
+        magnetometer then corrects it instead of setting it afresh; with
+        ``heading_known`` False the first magnetometer reading sets it, as after
+        an alignment.
         """
         state = new_state(self._coefficients)
         s = state[0]
@@ -375,7 +378,8 @@ class Estimator:
         s["t"] = float(t)
         s["t_accel"] = float(t)
         s["initialised"] = 1
-        s["mag_state"] = 1  # heading is given: a magnetometer corrects it, not re-sets it
+        # heading given: a magnetometer corrects it; else its first reading sets it
+        s["mag_state"] = 1 if heading_known else 0
         self._bind(state)
 
     @property

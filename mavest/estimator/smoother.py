@@ -8,7 +8,8 @@ its tilt error is less like the backward pass's; the backward pass is
 the same filter run over the time-reversed recording, in which the attitude
 kinematics read dR/ds = R[−ω]×: the gyroscope negated, accelerometer, magnetometer
 and known acceleration unchanged, so the backward filter's bias is −b. It starts at
-the forward pass's last attitude with the configured initial uncertainty. At each sample
+the forward pass's last attitude with the configured initial uncertainty, its heading
+set again by its own magnetometer where there is one. At each sample
 the forward estimate (after that sample's update) is updated with the backward
 filter's *prior* attitude there (before that sample's update: its estimate one sample
 later in time, predicted one gyro step back), so that no sample's measurement counts
@@ -162,8 +163,9 @@ def smooth_forward(
     forward pass's last estimate from ``backward_start``, (q, bias, cov) as
     :meth:`Estimator.initialise` takes them (bias and cov in the forward sense); by
     default from the forward pass's last attitude, the configured initial bias and the
-    configured initial uncertainty. The measurements of that sample are not used
-    backward.
+    configured initial uncertainty, its heading then set by its first magnetometer
+    reading (unless a known acceleration needs it from the start). The measurements of
+    that sample are not used backward.
 
     A sample is fused where the forward pass has an estimate and the backward pass a
     prior: not where either has none (not initialised, skipped), nor where the
@@ -189,6 +191,9 @@ def smooth_forward(
     heading_known = (forward.flags & StepFlags.HEADING_ALIGNED) != 0
     forward_heading = np.logical_or.accumulate(heading_known | forward.mag_used)
     backward = Estimator(config.replace(initial_bias=tuple(-np.asarray(config.initial_bias))))
+    # a state given, or a known acceleration (removed in the world frame), holds the
+    # heading from the start; else the backward pass's own magnetometer sets it
+    heading_given = backward_start is not None or _any_known(linear)
     if backward_start is None:
         # The backward pass starts at the forward pass's last attitude, with the
         # configured initial uncertainty: its value is taken, not its certainty (and
@@ -196,8 +201,7 @@ def smooth_forward(
         # instead, as the filter aligns, a recording that ends in motion left it at the
         # mercy of that sample's linear acceleration: 135° off in tilt on a simulated
         # flight, where it then stayed wrong with a small σ and made the smoothed
-        # attitude worse than the filter's. A known acceleration is removed in the
-        # world frame, which needs the heading from the start as well.
+        # attitude worse than the filter's.
         initial = np.diag(
             [config.initial_tilt_sigma**2] * 2
             + [config.initial_heading_sigma**2]
@@ -206,7 +210,7 @@ def smooth_forward(
         backward_start = (forward.q[last], np.asarray(config.initial_bias), initial)
     q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
     flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
-    backward.initialise(0.0, q0, -b0, flip @ P0 @ flip)
+    backward.initialise(0.0, q0, -b0, flip @ P0 @ flip, heading_known=heading_given)
     right = config.error == "right"
     backward_heading = False
     # the backward estimate at the sample after the block (its next block's first)
