@@ -21,6 +21,10 @@ TINY = {
         "Consistency",
         ["--runs", "1", "--quick", "--scenario", "small", "--jobs", "1"],
     ),
+    "start_in_motion": (
+        "Start in motion",
+        ["--scenario", "small", "--seeds", "0", "--starts", "0", "10"],
+    ),
     "service_bench": (
         "Service",
         ["--only", "replay", "--replay-seconds", "1", "--rounds", "1"],

@@ -48,7 +48,7 @@ from mavest.datasets import DATA_ENV_VAR
 from mavest.datasets.broad import list_trials, load_trial
 from mavest.evaluation import report
 from mavest.evaluation.calibration import Calibration, rank_correlation, score_attitude
-from mavest.evaluation.consistency import SCENARIOS, Scenario, simulate_scenario
+from mavest.evaluation.consistency import SCENARIOS, distinct_flights, simulate_scenario
 
 PARTS = ("broad", "sim")
 SPLITS = ("all", "odd", "even")
@@ -183,19 +183,6 @@ def broad_recordings(prefixes: Sequence[str] | None, split: str, quick: bool) ->
     return recordings
 
 
-def distinct_scenarios(names: Sequence[str] | None) -> list[Scenario]:
-    """The scenarios whose flights differ: those that differ only in the prior the Monte
-    Carlo draws (the filter here aligns itself) fly the same, and the first stands for
-    them."""
-    kept: dict[tuple, Scenario] = {}
-    for scenario in SCENARIOS:
-        if names and scenario.name not in names:
-            continue
-        flight = (scenario.motion, scenario.duration, scenario.rate, scenario.magnetometer)
-        kept.setdefault(flight, scenario)
-    return list(kept.values())
-
-
 def simulated_recordings(
     names: Sequence[str] | None, seeds: Sequence[int], quick: bool
 ) -> list[Recording]:
@@ -203,7 +190,7 @@ def simulated_recordings(
     configuration claims (bursts on top), scored after :data:`SETTLE`."""
     config = EstimatorConfig()
     recordings = []
-    for scenario in distinct_scenarios(names):
+    for scenario in distinct_flights(names):
         if quick:
             scenario = dataclasses.replace(scenario, duration=QUICK_SECONDS)
         for seed in seeds:

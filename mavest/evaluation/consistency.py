@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -255,6 +256,19 @@ def summarise(results: list[RunResult], rate: float, window: float = 10.0) -> Su
         float(np.degrees(np.sqrt(np.mean(tilt**2)))),
         float(np.degrees(np.sqrt(np.mean(heading**2)))),
     )
+
+
+def distinct_flights(names: Sequence[str] | None = None) -> list[Scenario]:
+    """The scenarios whose flights differ (those named, or all): scenarios that differ
+    only in the prior the Monte Carlo draws fly the same, and the first of them stands
+    for the rest (for tools that let the filter align itself on the flights)."""
+    kept: dict[tuple, Scenario] = {}
+    for scenario in SCENARIOS:
+        if names and scenario.name not in names:
+            continue
+        flight = (scenario.motion, scenario.duration, scenario.rate, scenario.magnetometer)
+        kept.setdefault(flight, scenario)
+    return list(kept.values())
 
 
 def simulate_scenario(scenario: Scenario, config: EstimatorConfig, seed: int) -> SimulatedImu:
