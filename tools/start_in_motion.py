@@ -4,7 +4,7 @@
                                               [--starts 0 10 20 30 40 50] [--results [FILE]]
 
 On the flights of the Monte Carlo's scenarios (mavest.evaluation.consistency; one per
-distinct flight model, as tools/covariance.py takes them) it runs ``mavest.estimate``
+distinct flight, ``distinct_flights``) it runs ``mavest.estimate``
 from each ``--starts`` time on, as a service started while the vehicle flies (or a
 log begun then), and scores its tilt against the truth: the error at its first
 estimate and the σ per axis it claims there (the filter aligns on one accelerometer
@@ -52,6 +52,8 @@ class Start:
 
 
 def starts_of(scenario: Scenario, seed: int, starts: Sequence[float]) -> list[Start]:
+    """The default filter started at each of ``starts`` (s) on this scenario's flight;
+    starts past the flight's end, or that never estimate, are left out."""
     config = EstimatorConfig()
     flight = simulate_scenario(scenario, config, seed)
     out = []
