@@ -191,26 +191,21 @@ def smooth_forward(
     heading_known = (forward.flags & StepFlags.HEADING_ALIGNED) != 0
     forward_heading = np.logical_or.accumulate(heading_known | forward.mag_used)
     backward = Estimator(config.replace(initial_bias=tuple(-np.asarray(config.initial_bias))))
-    # a state given, or a known acceleration (removed in the world frame), holds the
-    # heading from the start; else the backward pass's own magnetometer sets it
-    heading_given = backward_start is not None or _any_known(linear)
     if backward_start is None:
         # The backward pass starts at the forward pass's last attitude, with the
-        # configured initial uncertainty: its value is taken, not its certainty (and
-        # without a magnetometer only its tilt is fused). Aligned on its first sample
-        # instead, as the filter aligns, a recording that ends in motion left it at the
-        # mercy of that sample's linear acceleration: 135° off in tilt on a simulated
-        # flight, where it then stayed wrong with a small σ and made the smoothed
-        # attitude worse than the filter's.
-        initial = np.diag(
-            [config.initial_tilt_sigma**2] * 2
-            + [config.initial_heading_sigma**2]
-            + [config.initial_bias_sigma**2] * 3
-        )
-        backward_start = (forward.q[last], np.asarray(config.initial_bias), initial)
-    q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
-    flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
-    backward.initialise(0.0, q0, -b0, flip @ P0 @ flip, heading_known=heading_given)
+        # configured initial bias and uncertainty: its value is taken, not its certainty
+        # (and without a magnetometer only its tilt is fused). Aligned on its first
+        # sample instead, as the filter aligns, a recording that ends in motion left it
+        # at the mercy of that sample's linear acceleration: 135° off in tilt on a
+        # simulated flight, where it then stayed wrong with a small σ and made the
+        # smoothed attitude worse than the filter's. Its own magnetometer sets its
+        # heading, unless a known acceleration (removed in the world frame) needs the
+        # heading from the start.
+        backward.initialise(0.0, forward.q[last], heading_known=_any_known(linear))
+    else:
+        q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
+        flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
+        backward.initialise(0.0, q0, -b0, flip @ P0 @ flip)
     right = config.error == "right"
     backward_heading = False
     # the backward estimate at the sample after the block (its next block's first)
