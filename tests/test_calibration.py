@@ -249,7 +249,37 @@ def test_a_smoother_in_the_package_becomes_an_entry(
     assert ("mavest.smooth" in names) == hasattr(mavest, "smooth")
     monkeypatch.setattr(mavest, "smooth", lambda *args: None, raising=False)
     names = [entry.name for entry in tool.estimators()]
-    assert names == ["mavest", "mavest adaptive", "mavest.smooth"]
+    assert names == ["mavest", "mavest adaptive", "mavest.smooth", "mavest.smooth adaptive"]
+
+
+def test_a_configuration_file_adds_the_filter_and_the_smoother_with_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    config = tmp_path / "mine.toml"
+    config.write_text("[estimator]\nerror = 'right'\nchart = 'exp'\nvelocity_sigma = 0.5\n")
+    entries = tool.estimators([config])
+    assert [e.name for e in entries[-2:]] == ["mavest (mine.toml)", "mavest.smooth (mine.toml)"]
+    assert [e.error for e in entries[-2:]] == ["right", "right"]
+    arguments = ["--quick", "--parts", "sim", "--scenario", "small", "--config", str(config)]
+    assert tool.main([*arguments, "--estimator", "mavest (mine.toml)"]) == 0
+    out = capsys.readouterr().out
+    assert "### mavest (mine.toml): simulated 6-D tilt" in out and "### mavest:" not in out
+    # σ follows the file's velocity model: smaller than the default's on the same flight
+    ours = _sigma_cell(out, "mavest (mine.toml)")
+    assert tool.main([*arguments, "--estimator", "mavest"]) == 0
+    assert ours < _sigma_cell(capsys.readouterr().out, "mavest")
+    config.write_text("[estimator]\nvelocity_sigma = 'fast'\n")
+    with pytest.raises(SystemExit) as exit_:
+        tool.main(["--config", str(config)])
+    assert exit_.value.code == 2
+    assert "--config: " in capsys.readouterr().err
+
+
+def _sigma_cell(out: str, estimator: str) -> float:
+    """σ per axis (mean) of an estimator's first simulated tilt row."""
+    table = out.split(f"### {estimator}: simulated 6-D tilt", 1)[1]
+    row = next(line for line in table.splitlines() if line.startswith("| small seed 0 |"))
+    return float(row.strip("|").split("|")[3])
 
 
 def test_quick_simulated_flight_table_and_section(

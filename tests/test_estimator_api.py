@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tool_module import load_tool
 
 import mavest
 from mavest import ConfigError, Estimator, EstimatorConfig, StepFlags, estimate
@@ -252,6 +253,32 @@ def test_the_measured_motion_level_keeps_the_filter_consistent() -> None:
     assert low < adaptive.anees < high, adaptive
     (adaptive,) = monte_carlo([ADAPTIVE], changing, runs)
     assert adaptive.anees < high and adaptive.anees_late < high, adaptive
+
+
+def test_the_consistency_tool_scores_a_configuration_file_on_the_same_flights(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    mine = tmp_path / "mine.toml"
+    mine.write_text("[estimator]\nvelocity_sigma = 0.3\n")  # the flights' is 1.5 m/s
+    tool = load_tool("consistency")
+    arguments = ["--runs", "2", "--quick", "--scenario", "small", "--jobs", "1"]
+    assert tool.main([*arguments, "--config", str(mine)]) == 0
+    rows = {
+        cells[0]: cells
+        for line in capsys.readouterr().out.splitlines()
+        if line.startswith("| ") and (cells := [c.strip() for c in line.strip("|").split("|")])
+    }
+    assert "configs/adaptive.toml (motion level measured)" in rows
+    # too little motion claimed: overconfident (measured ANEES 15.8, the default's 6.0)
+    ours, default = (
+        rows["mine.toml (--config)"],
+        rows["**iterated/left/heading_tilt/full (default)**"],
+    )
+    assert float(ours[1]) > 2.0 * float(default[1]) and ours[-1] == "—"
+    mine.write_text("[estimator]\nvelocity_sigma = -1.0\n")
+    with pytest.raises(SystemExit) as exit_:
+        tool.main([*arguments, "--config", str(mine)])
+    assert exit_.value.code == 2 and "--config: " in capsys.readouterr().err
 
 
 def test_sigma_follows_the_measured_motion_and_the_rate() -> None:

@@ -1,7 +1,7 @@
 """Monte Carlo consistency of every filter variant: ANEES, NIS, tilt and heading RMSE.
 
     .venv/bin/python tools/consistency.py [--runs 100] [--scenario NAME ...] [--quick]
-                                          [--smooth] [--results [FILE]]
+                                          [--config FILE ...] [--smooth] [--results [FILE]]
 
 For each scenario (mavest.evaluation.consistency.SCENARIOS) and every variant
 — update EKF / iterated / sigma-point × reset none / first-order / full × error
@@ -12,8 +12,9 @@ and tilt and heading RMSE. Everything but the structure is mavest's default
 configuration, and the simulated flights carry exactly the noise and vehicle
 motion that configuration claims (bursts and changing_motion's levels excepted);
 configs/adaptive.toml (the motion level measured) is scored on the same flights,
-whose gyro noise has no part ∝ the rate, so it errs safe there. "ok": the whole-run ANEES,
-6 dof and attitude, inside the band. --results writes the printed tables as the
+whose gyro noise has no part ∝ the rate, so it errs safe there; so is each
+configuration given with --config FILE (keys not given take the defaults). "ok": the
+whole-run ANEES, 6 dof and attitude, inside the band. --results writes the printed tables as the
 Consistency section of docs/results.md (or FILE).
 
 --smooth: the smoother (mavest.smooth) instead, on the default configuration: the
@@ -32,7 +33,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from mavest import EstimatorConfig
+from mavest import ConfigError, EstimatorConfig
 from mavest.evaluation import report
 from mavest.evaluation.consistency import SCENARIOS, Scenario, Summary, monte_carlo
 
@@ -87,12 +88,7 @@ def format_smooth_table(scenario: Scenario, filtered: Summary, smoothed: Summary
     return "\n".join(lines)
 
 
-def format_table(
-    scenario: Scenario,
-    configs: list[EstimatorConfig],
-    summaries: list[Summary],
-    default: EstimatorConfig,
-) -> str:
+def format_table(scenario: Scenario, labels: list[str], summaries: list[Summary]) -> str:
     s0 = summaries[0]
     lines = [
         f"### {scenario.name}: {scenario.description}",
@@ -104,11 +100,7 @@ def format_table(
         "| heading RMSE ° | in band |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    adaptive = EstimatorConfig.from_toml(ADAPTIVE_FILE)
-    for config, s in zip(configs, summaries, strict=True):
-        name = f"**{config.variant} (default)**" if config == default else config.variant
-        if config == adaptive:
-            name = "configs/adaptive.toml (motion level measured)"
+    for name, s in zip(labels, summaries, strict=True):
         lines.append(
             f"| {name} | {s.anees:.2f} | {s.anees_attitude:.2f} | {s.anees_early:.2f} | "
             f"{s.anees_late:.2f} | {s.nis:.2f} | {s.tilt_rmse_deg:.2f} | "
@@ -129,6 +121,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--smooth", action="store_true", help="the smoother beside the filter (default config)"
     )
+    parser.add_argument(
+        "--config",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="FILE",
+        help="also this configuration (TOML), on the same flights",
+    )
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--seed", type=int, default=0)
     report.add_results_option(parser)
@@ -138,8 +138,16 @@ def main(argv: list[str] | None = None) -> int:
     configs = variants(default)
     if args.quick:
         configs = [c for c in configs if c == default or (c.update == "ekf" and c.chart == "exp")]
+    labels = [f"**{c.variant} (default)**" if c == default else c.variant for c in configs]
     # on the default's flights, whose gyro noise has no part ∝ the rate: it errs safe there
-    configs.append(EstimatorConfig.from_toml(ADAPTIVE_FILE))
+    files = [(ADAPTIVE_FILE, "configs/adaptive.toml (motion level measured)")]
+    files += [(path, f"{path.name} (--config)") for path in args.config]
+    for path, label in files:
+        try:
+            configs.append(EstimatorConfig.from_toml(path))
+        except ConfigError as error:
+            parser.error(f"--config: {error}")
+        labels.append(label)
     if args.smooth:
         configs = [default]
     scenarios = [s for s in SCENARIOS if not args.scenario or s.name in args.scenario]
@@ -169,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.smooth:
                 print(format_smooth_table(scenario, *combined))
             else:
-                print(format_table(scenario, configs, combined, default))
+                print(format_table(scenario, labels, combined))
             print()
     return 0
 

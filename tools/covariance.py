@@ -3,9 +3,11 @@
     .venv/bin/python tools/covariance.py [--parts broad sim] [--trials 02 07 ...]
                                          [--split odd|even|all] [--seeds 0 1 2 3]
                                          [--scenario NAME ...] [--estimator NAME ...]
-                                         [--quick] [--results [FILE]]
+                                         [--config FILE ...] [--quick] [--results [FILE]]
 
-Each estimator (mavest, and mavest.smooth when the package has it) runs on every BROAD
+Each estimator (mavest with its defaults and with configs/adaptive.toml, and
+mavest.smooth with each when the package has it; with --config FILE also both with
+that configuration, keys not given taking the defaults) runs on every BROAD
 trial ($MAVEST_DATA/broad; 6-D, and 9-D with the magnetometer) and on simulated flights
 of the Monte Carlo's scenarios (mavest.evaluation.consistency; one per distinct flight
 model and seed). Per recording and quantity — tilt, and in 9-D heading — it prints
@@ -43,7 +45,7 @@ from typing import Literal
 import numpy as np
 
 import mavest
-from mavest import EstimatorConfig
+from mavest import ConfigError, EstimatorConfig
 from mavest.datasets import DATA_ENV_VAR
 from mavest.datasets.broad import list_trials, load_trial
 from mavest.evaluation import report
@@ -109,35 +111,45 @@ class NamedEstimator:
     error: Literal["left", "right"]
 
 
-def _filter(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
-    series = mavest.estimate(recording.t, recording.gyro, recording.accel, recording.mag)
-    return series.q, series.cov
+def _running(function: Callable[..., mavest.EstimateSeries], config: EstimatorConfig | None) -> Run:
+    """``function`` (mavest.estimate or mavest.smooth) with ``config`` (None: the defaults)
+    as a recording's estimator."""
 
+    def run(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
+        series = function(recording.t, recording.gyro, recording.accel, recording.mag, config)
+        return series.q, series.cov
 
-def _smoother(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
-    series = mavest.smooth(recording.t, recording.gyro, recording.accel, recording.mag)
-    return series.q, series.cov
+    return run
 
 
 ADAPTIVE = EstimatorConfig.from_toml(Path(__file__).resolve().parents[1] / "configs/adaptive.toml")
 
 
-def _adaptive(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
-    series = mavest.estimate(recording.t, recording.gyro, recording.accel, recording.mag, ADAPTIVE)
-    return series.q, series.cov
-
-
-def estimators() -> list[NamedEstimator]:
-    """mavest's filter, with the motion level measured (configs/adaptive.toml) and, when
-    the package has one, its smoother: adding an estimator is one entry here."""
-    error = EstimatorConfig().error
-    entries = [
-        NamedEstimator("mavest", _filter, error),
-        NamedEstimator("mavest adaptive", _adaptive, ADAPTIVE.error),
-    ]
+def estimators(configs: Sequence[Path] = ()) -> list[NamedEstimator]:
+    """mavest's filter with its defaults and with the motion level measured
+    (configs/adaptive.toml), then, when the package has one, its smoother with each; then
+    the filter and the smoother with each of ``configs`` (TOML files, as the service reads
+    them), named after the file. Adding an estimator is one entry here."""
+    functions = [("mavest", mavest.estimate)]
     if hasattr(mavest, "smooth"):
-        entries.append(NamedEstimator("mavest.smooth", _smoother, error))
+        functions.append(("mavest.smooth", mavest.smooth))
+    builtin: list[tuple[str, EstimatorConfig | None]] = [("", None), (" adaptive", ADAPTIVE)]
+    entries = [
+        NamedEstimator(f"{name}{suffix}", _running(function, config), _error(config))
+        for name, function in functions
+        for suffix, config in builtin
+    ]
+    for path in configs:
+        config = EstimatorConfig.from_toml(path)
+        entries += [
+            NamedEstimator(f"{name} ({path.name})", _running(function, config), config.error)
+            for name, function in functions
+        ]
     return entries
+
+
+def _error(config: EstimatorConfig | None) -> Literal["left", "right"]:
+    return (config or EstimatorConfig()).error
 
 
 # --------------------------------------------------------------------------
@@ -377,13 +389,26 @@ def main(argv: list[str] | None = None) -> int:
         help=f"{QUICK_TRIALS} BROAD trials, one {QUICK_SECONDS:g} s flight per scenario",
     )
     parser.add_argument(
-        "--estimator",
+        "--config",
         action="append",
-        choices=[entry.name for entry in estimators()],
-        help="only these (default: every one the package has)",
+        type=Path,
+        default=[],
+        metavar="FILE",
+        help="also the filter and the smoother with this configuration (TOML)",
+    )
+    parser.add_argument(
+        "--estimator", action="append", help="only these (default: every one the package has)"
     )
     report.add_results_option(parser)
     args = parser.parse_args(argv)
+    try:
+        available = estimators(args.config)
+    except ConfigError as error:
+        parser.error(f"--config: {error}")
+    names = [entry.name for entry in available]
+    for name in args.estimator or []:
+        if name not in names:
+            parser.error(f"--estimator {name!r}: one of {', '.join(map(repr, names))}")
 
     started = time.perf_counter()
     try:
@@ -396,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     except MissingInputError as error:
         print(f"covariance: {error}", file=sys.stderr)
         return 2
-    entries = [e for e in estimators() if not args.estimator or e.name in args.estimator]
+    entries = [e for e in available if not args.estimator or e.name in args.estimator]
     results = run_all(recordings, entries)
     grouped = groups(results)
 
