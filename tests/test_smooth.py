@@ -570,6 +570,30 @@ def test_consistency_tool_smooth_mode(tmp_path, capsys: pytest.CaptureFixture[st
     assert out.strip() in section
 
 
+def test_consistency_tool_smooths_with_the_configuration_given(
+    tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    mine = tmp_path / "mine.toml"
+    mine.write_text("[estimator]\nvelocity_sigma = 0.3\n")  # the flights carry it too
+    tool = load_tool("consistency")
+    arguments = ["--smooth", "--runs", "2", "--scenario", "small", "--jobs", "1"]
+    assert tool.main([*arguments, "--config", str(mine)]) == 0
+    with_file = capsys.readouterr().out
+    assert "consistency of the smoother with mine.toml" in with_file
+    assert tool.main(arguments) == 0
+    default = capsys.readouterr().out
+    assert "consistency of the smoother," in default
+    # other flights (their velocity's σ is the file's), other rows
+    assert _rows(with_file) != _rows(default)
+    with pytest.raises(SystemExit) as exit_:
+        tool.main([*arguments, "--config", str(mine), "--config", str(mine)])
+    assert exit_.value.code == 2 and "one --config" in capsys.readouterr().err
+
+
+def _rows(out: str) -> list[str]:
+    return [line for line in out.splitlines() if line.startswith("| filter")]
+
+
 def test_evidence_never_bolds_an_offline_column() -> None:
     evidence = load_tool("evidence")
     rows = [

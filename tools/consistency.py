@@ -17,10 +17,11 @@ configuration given with --config FILE (keys not given take the defaults). "ok":
 whole-run ANEES, 6 dof and attitude, inside the band. --results writes the printed tables as the
 Consistency section of docs/results.md (or FILE).
 
---smooth: the smoother (mavest.smooth) instead, on the default configuration: the
-filter and the smoothed estimate on the same flights, the forward pass started from a
-prior drawn around the truth and the backward pass, as mavest.smooth starts it, from
-the forward pass's end; --results writes them as the Smoothing consistency section.
+--smooth: the smoother (mavest.smooth) instead, on the default configuration (or the
+one --config gives): the filter and the smoothed estimate on the same flights, the
+forward pass started from a prior drawn around the truth and the backward pass, as
+mavest.smooth starts it, from the forward pass's end; --results writes them as the
+Smoothing consistency section.
 """
 
 from __future__ import annotations
@@ -119,7 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         "--quick", action="store_true", help="only the default and the classic EKFs"
     )
     parser.add_argument(
-        "--smooth", action="store_true", help="the smoother beside the filter (default config)"
+        "--smooth",
+        action="store_true",
+        help="the smoother beside the filter (default config, or --config's)",
     )
     parser.add_argument(
         "--config",
@@ -148,8 +151,10 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as error:
             parser.error(f"--config: {error}")
         labels.append(label)
-    if args.smooth:
-        configs = [default]
+    if args.smooth:  # the smoother with the default configuration, or the one given
+        if len(args.config) > 1:
+            parser.error("--smooth takes one --config at most")
+        configs = [configs[-1] if args.config else default]
     scenarios = [s for s in SCENARIOS if not args.scenario or s.name in args.scenario]
 
     # jobs: (scenario, slice of runs); every variant sees the same flights
@@ -168,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     title = "Smoothing consistency" if args.smooth else "Consistency"
     with report.results_section(args.results, title, __file__, argv, __doc__):
         if args.smooth:
-            print(f"mavest Monte Carlo consistency of the smoother, {elapsed:.0f} s\n")
+            given = f" with {args.config[0].name}" if args.config else ""
+            print(f"mavest Monte Carlo consistency of the smoother{given}, {elapsed:.0f} s\n")
         else:
             print(f"mavest Monte Carlo consistency: {len(configs)} variants, {elapsed:.0f} s\n")
         for scenario in scenarios:
