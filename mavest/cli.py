@@ -720,10 +720,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Read IMU messages (RAW_IMU, SCALED_IMU/2/3, HIGHRES_IMU) from a "
         "MAVLink link, estimate attitude and gyro bias per vehicle, and send ATTITUDE and "
         "ATTITUDE_QUATERNION (and a HEARTBEAT at 1 Hz) back on the link and to every --out. "
-        "Runs until Ctrl-C or SIGTERM, then flushes its files and exits 0.",
-        epilog="CONNECTION: udpin:HOST:PORT (listen; replies go to the sender), "
-        "udpout:HOST:PORT, tcp:HOST:PORT (reconnects), tcpin:HOST:PORT, or a serial device "
-        "(/dev/ttyUSB0, with --baud).",
+        "Runs until Ctrl-C or SIGTERM, then flushes its files and exits 0 (1 if it heard "
+        "no IMU stream).",
+        epilog="CONNECTION: udpin:HOST:PORT (listen; replies go to the sender; udp:HOST:PORT "
+        "and a bare HOST:PORT are the same), udpout:HOST:PORT, udpbcast:ADDRESS:PORT, "
+        "tcp:HOST:PORT (reconnects), tcpin:HOST:PORT, or a serial device (/dev/ttyUSB0 with "
+        "--baud, or /dev/ttyUSB0,57600).",
     )
     run.add_argument("connection", metavar="CONNECTION", help="where the IMU data comes from")
     run.add_argument(

@@ -305,7 +305,7 @@ def test_mavest_on_log171_against_att(log171: AutopilotLog) -> None:
     q = estimate(log171.t, log171.gyro, log171.accel).q
     # Measured inclination RMSE: 0.10° over the quiet 20–60 s; 0.64° over the rest
     # segment 0–60 s (it includes the vehicle being handled at ~14–19 s and the start);
-    # 5.13° in flight 60–200 s, where VQF gives 5.37° and Fusion 6.05°.
+    # 4.99° in flight 60–200 s, where VQF gives 5.37° and Fusion 6.05°.
     assert inclination_rmse(log171, q, 20.0, 60.0) < 0.2
     assert inclination_rmse(log171, q, 0.0, 60.0) < 0.8
     assert inclination_rmse(log171, q, 60.0, 200.0) < 6.0
@@ -316,7 +316,7 @@ def test_mavest_on_log171_upside_down_against_the_resting_accelerometer(
 ) -> None:
     """After the crash the copter lies upside down, still; the gyro clipped in the flip.
     Against the accelerometer's own gravity direction there (a reference no filter
-    wrote) mavest is within 0.53° (it re-aligns once calm), where the autopilot's ATT
+    wrote) mavest is within 0.51° (it re-aligns once calm), where the autopilot's ATT
     is 8.9° off and VQF 11.8° (tools/evidence.py, same windows)."""
     violent = np.flatnonzero(np.linalg.norm(log171.gyro, axis=1) > np.radians(100.0))
     after_flip = Segment("upside down", float(log171.t[violent[-1]]), np.inf)

@@ -359,7 +359,7 @@ def test_peer_frames_on_broad(broad_trials: list, peer: str, module: str) -> Non
 
 
 def test_mavest_inclination_on_broad_is_within_1_2_of_vqf(broad_trials: list) -> None:
-    """The issue's bar, on all trials and on each half (even / odd trial numbers)."""
+    """Within 1.2× VQF, on all trials and on each half (even / odd trial numbers)."""
     pytest.importorskip("vqf", reason="vqf (dev extra) is not installed")
     from mavest.evaluation.accuracy import mavest_filter, peer_filter, score_inclination
 

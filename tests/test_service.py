@@ -26,11 +26,11 @@ from mavest.viz.viewer import rerun_binary
 
 PROJECT = Path(__file__).resolve().parents[1]
 
-# The bound on roll and pitch RMS (after 10 s in replay, 5 s live), for the
+# The bound on roll and pitch RMS (after 10 s in replay, 5 s live), for the
 # ArduPilot flights run with configs/ardupilot.toml: 40 s at 1 kHz, seeds 1–4, the
 # larger of roll and pitch is 0.93, 0.73, 0.91, 0.42°.
 ROLL_PITCH_BOUND = 1.0  # deg
-# Looser, for runs that are not the issue's: the default configuration's 0.5 °/s
+# Looser, for other runs: the default configuration's 0.5 °/s
 # gyro-bias prior on those flights (seed 3: pitch 1.8°), or the PX4 flavour.
 TURNING_FLIGHT_TILT_BOUND = 2.0  # deg
 ARDUPILOT_CONFIG = PROJECT / "configs" / "ardupilot.toml"
