@@ -245,11 +245,11 @@ def test_a_smoother_in_the_package_becomes_an_entry(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     names = [entry.name for entry in tool.estimators()]
-    assert names[:2] == ["mavest", "mavest adaptive"]
+    assert names[:3] == ["mavest", "mavest adaptive", "mavest handheld"]
     assert ("mavest.smooth" in names) == hasattr(mavest, "smooth")
     monkeypatch.setattr(mavest, "smooth", lambda *args: None, raising=False)
     names = [entry.name for entry in tool.estimators()]
-    assert names == ["mavest", "mavest adaptive", "mavest.smooth", "mavest.smooth adaptive"]
+    assert names[3:] == ["mavest.smooth", "mavest.smooth adaptive", "mavest.smooth handheld"]
 
 
 def test_a_configuration_file_adds_the_filter_and_the_smoother_with_it(

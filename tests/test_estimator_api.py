@@ -6,6 +6,7 @@ BROAD tools use (inclination: the angle between true and estimated vertical).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -253,6 +254,37 @@ def test_the_measured_motion_level_keeps_the_filter_consistent() -> None:
     assert low < adaptive.anees < high, adaptive
     (adaptive,) = monte_carlo([ADAPTIVE], changing, runs)
     assert adaptive.anees < high and adaptive.anees_late < high, adaptive
+
+
+HANDHELD = EstimatorConfig.from_toml(Path(__file__).resolve().parents[1] / "configs/handheld.toml")
+
+
+def test_the_handheld_profile_is_consistent_where_its_motion_prior_holds() -> None:
+    """configs/handheld.toml assumes accelerations that last a fraction of a second (the
+    velocity decorrelates in 0.1 s): on flights with that motion it is in band, with
+    bursts of 1 s or the default's 1 s velocity its σ is too small, as its file says."""
+    runs = 8
+    low, high = chi2_band(6, runs * 4)
+    small, bursts = (next(s for s in SCENARIOS if s.name == n) for n in ("small", "bursts"))
+    (own,) = monte_carlo([HANDHELD], small, runs)  # (measured 5.36, band [4.86, 7.26])
+    assert low < own.anees < high, own
+    (own_bursts,) = monte_carlo([HANDHELD], bursts, runs)  # (measured 9.06)
+    assert own_bursts.anees > high, own_bursts
+    default, handheld = monte_carlo([EstimatorConfig(), HANDHELD], small, runs)
+    assert low < default.anees < high, default
+    assert handheld.anees > 2 * high, handheld  # (measured 23.8)
+    # only these keys differ from the defaults (the file's comments say why)
+    changed = {
+        f.name
+        for f in dataclasses.fields(EstimatorConfig)
+        if getattr(HANDHELD, f.name) != getattr(EstimatorConfig(), f.name)
+    }
+    assert changed == {
+        "gyro_noise_density",
+        "gyro_scale_noise_density",
+        "velocity_adapt_time",
+        "velocity_time",
+    }
 
 
 def test_the_consistency_tool_scores_a_configuration_file_on_the_same_flights(

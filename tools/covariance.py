@@ -5,9 +5,10 @@
                                          [--scenario NAME ...] [--estimator NAME ...]
                                          [--config FILE ...] [--quick] [--results [FILE]]
 
-Each estimator (mavest with its defaults and with configs/adaptive.toml, and
-mavest.smooth with each when the package has it; with --config FILE also both with
-that configuration, keys not given taking the defaults) runs on every BROAD
+Each estimator (mavest with its defaults, with configs/adaptive.toml and with
+configs/handheld.toml, and mavest.smooth with each when the package has it; with
+--config FILE also both with that configuration, keys not given taking the defaults)
+runs on every BROAD
 trial ($MAVEST_DATA/broad; 6-D, and 9-D with the magnetometer) and on simulated flights
 of the Monte Carlo's scenarios (mavest.evaluation.consistency; one per distinct flight
 model and seed). Per recording and quantity — tilt, and in 9-D heading — it prints
@@ -122,18 +123,25 @@ def _running(function: Callable[..., mavest.EstimateSeries], config: EstimatorCo
     return run
 
 
-ADAPTIVE = EstimatorConfig.from_toml(Path(__file__).resolve().parents[1] / "configs/adaptive.toml")
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+ADAPTIVE = EstimatorConfig.from_toml(CONFIGS / "adaptive.toml")
+HANDHELD = EstimatorConfig.from_toml(CONFIGS / "handheld.toml")
 
 
 def estimators(configs: Sequence[Path] = ()) -> list[NamedEstimator]:
-    """mavest's filter with its defaults and with the motion level measured
-    (configs/adaptive.toml), then, when the package has one, its smoother with each; then
-    the filter and the smoother with each of ``configs`` (TOML files, as the service reads
-    them), named after the file. Adding an estimator is one entry here."""
+    """mavest's filter with its defaults, with the motion level measured
+    (configs/adaptive.toml) and with the hand-held profile (configs/handheld.toml), then,
+    when the package has one, its smoother with each; then the filter and the smoother
+    with each of ``configs`` (TOML files, as the service reads them), named after the
+    file. Adding an estimator is one entry here."""
     functions = [("mavest", mavest.estimate)]
     if hasattr(mavest, "smooth"):
         functions.append(("mavest.smooth", mavest.smooth))
-    builtin: list[tuple[str, EstimatorConfig | None]] = [("", None), (" adaptive", ADAPTIVE)]
+    builtin: list[tuple[str, EstimatorConfig | None]] = [
+        ("", None),
+        (" adaptive", ADAPTIVE),
+        (" handheld", HANDHELD),
+    ]
     entries = [
         NamedEstimator(f"{name}{suffix}", _running(function, config), _error(config))
         for name, function in functions
@@ -388,14 +396,7 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help=f"{QUICK_TRIALS} BROAD trials, one {QUICK_SECONDS:g} s flight per scenario",
     )
-    parser.add_argument(
-        "--config",
-        action="append",
-        type=Path,
-        default=[],
-        metavar="FILE",
-        help="also the filter and the smoother with this configuration (TOML)",
-    )
+    report.add_config_option(parser, "also the filter and the smoother with this configuration")
     parser.add_argument(
         "--estimator", action="append", help="only these (default: every one the package has)"
     )

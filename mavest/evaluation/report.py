@@ -134,6 +134,14 @@ def add_results_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_config_option(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--config FILE``, repeatable: ``what`` the tool does with each configuration
+    file (TOML, as the service reads it)."""
+    parser.add_argument(
+        "--config", action="append", type=Path, default=[], metavar="FILE", help=what
+    )
+
+
 @contextlib.contextmanager
 def teed_stdout() -> Iterator[io.StringIO]:
     """Everything printed within still goes to stdout, and is kept in the yielded buffer."""
