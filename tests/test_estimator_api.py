@@ -284,6 +284,7 @@ def test_the_handheld_profile_is_consistent_where_its_motion_prior_holds() -> No
         "gyro_scale_noise_density",
         "velocity_adapt_time",
         "velocity_time",
+        "smooth_accel_time",
     }
 
 
