@@ -34,15 +34,17 @@ import dask
 import fsspec
 import pyarrow.parquet as pq
 from distributed import Client
+from test_output_files import read_only_folder  # noqa: F401 (a fixture)
 from tool_module import load_tool
 
 import mavest._jit as jit
+import mavest.fleet.cluster as cluster
 from mavest.cli import main
 from mavest.datasets import data_root
 from mavest.fleet.cluster import Progress, local_cluster, run_fleet
 from mavest.fleet.inputs import FleetInputError, expand, output_names
 from mavest.fleet.rows import COLUMN_NAMES, LogTask, log_rows, warm_up
-from mavest.fleet.table import csv_bytes
+from mavest.fleet.table import csv_bytes, parquet_bytes
 from mavest.service.config import ServiceConfig
 from mavest.service.process import free_port
 from mavest.service.runners import replay
@@ -377,6 +379,52 @@ def test_ctrl_c_writes_the_table_of_what_finished(flights: Path, tmp_path: Path)
         f"mavest: interrupted: wrote the {finished} of 40 logs that finished to {table}"
     )
     assert all(line.split(",")[1] == "ok" for line in lines[1:])
+
+
+def test_a_log_name_that_is_not_utf8_is_written_with_its_bytes_visible(
+    flights: Path, tmp_path: Path
+) -> None:
+    good = tmp_path / os.fsdecode(b"caf\xe9.tlog")  # a Latin-1 name
+    broken = tmp_path / os.fsdecode(b"vid\xe9.tlog")
+    shutil.copyfile(flights / "a.tlog", good)
+    shutil.copyfile(flights / "empty.tlog", broken)
+    rows = [*log_rows(LogTask(str(good), CONFIG)), *log_rows(LogTask(str(broken), CONFIG))]
+    assert [row["status"] for row in rows] == ["ok", "error"]
+    shown = [f"{tmp_path}/caf\\xe9.tlog", f"{tmp_path}/vid\\xe9.tlog"]
+    with io.StringIO(csv_bytes(rows).decode("utf-8")) as text:
+        written = list(csv.DictReader(text))
+    assert [row["path"] for row in written] == shown
+    assert shown[1] in written[1]["error"]  # (the error names the log too)
+    table = pq.read_table(io.BytesIO(parquet_bytes(rows))).to_pylist()
+    assert [row["path"] for row in table] == shown and shown[1] in table[1]["error"]
+    # a name that is UTF-8 is written as it is
+    assert csv_bytes([{**rows[0], "path": "café.tlog"}]).decode().count("café.tlog") == 1
+
+
+def test_an_output_that_cannot_be_written_is_refused_before_any_log_is_replayed(
+    flights: Path,
+    tmp_path: Path,
+    read_only_folder: Path,  # noqa: F811 (the fixture)
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    def replayed(*_: Any, **__: Any) -> None:
+        raise AssertionError("the logs were replayed before the outputs were checked")
+
+    monkeypatch.setattr(cluster, "run_fleet", replayed)
+    log = str(flights / "a.tlog")
+    for arguments, option in (
+        (["--out", str(read_only_folder / "f.csv")], "--out"),
+        (
+            ["--out", str(tmp_path / "f.csv"), "--out-dir", str(read_only_folder)],
+            "--out-dir's recording",
+        ),
+    ):
+        assert main(["fleet", log, *arguments]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"mavest: {option} {read_only_folder}/"), err
+        assert f": cannot write in {read_only_folder}: " in err and err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ro"]
 
 
 def test_the_csv_of_no_rows_is_its_header() -> None:

@@ -11,6 +11,8 @@ from __future__ import annotations
 import asyncio
 import csv
 import math
+import threading
+import time
 import tracemalloc
 from pathlib import Path
 from typing import Any
@@ -308,6 +310,48 @@ def test_an_interrupted_replay_is_not_smoothed_and_says_so(
     rows = list(csv.reader((tmp_path / "e.csv").open()))  # whole, its rows as estimated
     assert rows[0] == list(COLUMNS)
     assert len(rows) - 1 == report.streams[0].stats.estimated > 0
+
+
+def test_a_stop_while_smoothing_ends_the_replay_as_an_interrupted_one(
+    flight: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    release = threading.Event()
+
+    async def stopped_while_smoothing() -> tuple[RunReport, float]:
+        loop = asyncio.get_running_loop()
+        stop = asyncio.Event()
+        asked: list[float] = []
+
+        def slow_smoothing(stream: Any) -> Any:
+            smoothed = smoothing.smooth_stream(stream)
+            asked.append(time.perf_counter())
+            loop.call_soon_threadsafe(stop.set)  # Ctrl-C while a long log is smoothed
+            release.wait(20)  # (its kernel goes on: one cannot cut it short)
+            return smoothed
+
+        monkeypatch.setattr(runners, "smooth_stream", slow_smoothing)
+        report = await replay(
+            flight,
+            ServiceConfig(),
+            Outputs(estimates=tmp_path / "e.csv"),
+            progress=False,
+            stop=stop,
+            smooth=True,
+        )
+        return report, time.perf_counter() - asked[0]
+
+    try:
+        report, waited = asyncio.run(stopped_while_smoothing())
+    finally:
+        release.set()
+    assert waited < 5.0  # at once, not once the smoother is done
+    assert report.interrupted and not report.smoothed
+    assert "  smoothing stopped: the replay was interrupted" in report.summary().splitlines()
+    # the table whole, with the rows estimated online and no smoothed column
+    rows = list(csv.reader((tmp_path / "e.csv").open()))
+    assert rows[0] == list(COLUMNS)
+    assert len(rows) - 1 == report.streams[0].stats.estimated > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e.csv"]
 
 
 def test_an_onboard_log_is_smoothed_from_the_samples_it_holds(

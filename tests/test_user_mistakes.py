@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from numba import njit
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from test_output_files import imu_tlog
 
 import mavest.service.runners as runners
 from mavest.cli import COMPILING, EXIT_INTERRUPTED, EXIT_NO_IMU, main
@@ -333,6 +334,48 @@ def test_an_interrupted_replay_exits_130_and_a_replay_without_imu_1(
             packet = encoder.heartbeat_encode(2, 3, 0, 0, 0).pack(encoder)
             stream.write((1_700_000_000_000_000 + i * 1_000_000).to_bytes(8, "big") + packet)
     assert main(["replay", str(no_imu)]) == EXIT_NO_IMU
+
+
+class _Counted:
+    """An estimate sink that counts the estimates."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def on_estimate(self, *_: object) -> None:
+        self.count += 1
+
+    def on_estimates(self, stream: object, t: np.ndarray, *_: object) -> None:
+        self.count += t.shape[0]
+
+    def on_reference(self, *_: object, **__: object) -> None:
+        pass
+
+    def on_references(self, *_: object) -> None:
+        pass
+
+
+def test_a_paced_replay_stops_at_once_in_a_pause_of_its_log(tmp_path: Path) -> None:
+    # 4 s at 200 Hz, the recording paused an hour after 2 s
+    log = imu_tlog(tmp_path / "paused.tlog", 4.0, pause_s=3600.0)
+    counted = _Counted()
+
+    async def stopped_in_the_pause() -> tuple[runners.RunReport, float]:
+        stop = asyncio.Event()
+        replaying = asyncio.create_task(
+            replay(log, ServiceConfig(), progress=False, speed=1.0, stop=stop, sinks=[counted])
+        )
+        while counted.count < 500 and not replaying.done():  # past the pause: waiting
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.3)
+        stop.set()
+        stopped = time.perf_counter()
+        report = await asyncio.wait_for(replaying, 30)
+        return report, time.perf_counter() - stopped
+
+    report, waited = asyncio.run(stopped_in_the_pause())
+    assert report.interrupted and waited < 1.0
+    assert 500 <= report.streams[0].stats.estimated < 800
 
 
 # ------------------------------------------------------------------ live, nothing useful

@@ -32,7 +32,7 @@ import numpy as np
 from mavest.mavlink.messages import StreamKey, mavlink2
 from mavest.mavlink.tlog import TlogError
 from mavest.onboard import OnboardLogError
-from mavest.paths import OutputPathError, partial_path
+from mavest.paths import OutputPathError, partial_path, publish
 from mavest.service.config import ServiceConfig
 from mavest.service.pipeline import Stream
 from mavest.service.runners import Outputs, RunReport, replay
@@ -237,10 +237,11 @@ def _replay(log_path: Path, task: LogTask) -> tuple[RunReport, SigmaMeans]:
             replay(log_path, task.config, outputs, progress=False, sinks=(sigmas,))
         )
         if rrd is not None and rrd_partial is not None:
-            os.replace(rrd_partial, rrd)
+            publish(rrd_partial, rrd)  # (where a link points; into a FIFO, never over it)
     finally:
         if rrd_partial is not None:
-            rrd_partial.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # (a read-only folder refuses even this)
+                rrd_partial.unlink(missing_ok=True)
     for path, error in report.output_errors.items():
         log.warning("%s stopped early: %s", rrd if path == rrd_partial else path, error)
     return report, sigmas

@@ -38,8 +38,10 @@ The file appears whole or not at all: rows are written, a block at a time (memor
 stays flat however long the run), to a hidden file beside it (:func:`paths.partial_path`)
 renamed at the end (with ``--smooth``, once the smoothed columns are added to its rows,
 a block at a time too). A run stopped by Ctrl-C keeps the rows it has, all complete; a
-run that fails on an error leaves no file. Parquet needs pyarrow
-(``pip install 'mavest[parquet]'``), CSV nothing.
+run that fails on an error leaves no file. A symbolic link is written at the file it
+points to; a character device or a FIFO (``--estimates /dev/stdout``) gets the whole
+table at the end, copied into it (:func:`paths.publish`), and is never replaced.
+Parquet needs pyarrow (``pip install 'mavest[parquet]'``), CSV nothing.
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ from typing import Any
 
 import numpy as np
 
-from mavest.paths import OutputPathError, partial_path
+from mavest.paths import OutputPathError, partial_path, publish
 from mavest.so3 import euler_sigmas
 
 log = logging.getLogger("mavest")
@@ -169,7 +171,8 @@ class EstimatesTable:
                 _CsvFile(self._temporary) if kind == "csv" else _ParquetFile(self._temporary)
             )
         except OSError as error:
-            self._temporary.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # (a read-only folder refuses even this)
+                self._temporary.unlink(missing_ok=True)
             raise EstimatesTableError(
                 f"cannot write {self.path}: {error.strerror or error}"
             ) from None
@@ -344,11 +347,13 @@ class EstimatesTable:
             log.error("%s; no table written (estimating on)", self.error)
 
     def _publish(self) -> None:
-        """The file whole under its own name."""
+        """The file whole under its own name (written where a link points, copied into
+        a device or a FIFO: :func:`paths.publish`)."""
         try:
-            os.replace(self._temporary, self.path)
+            publish(self._temporary, self.path)
         except OSError as error:
-            self._temporary.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                self._temporary.unlink(missing_ok=True)
             self.error = f"cannot write {self.path}: {error.strerror or error}"
             log.error("%s; no table written", self.error)
 
@@ -402,7 +407,8 @@ class EstimatesTable:
                 _add_parquet_columns(self._temporary, rewritten, values)
             os.replace(rewritten, self._temporary)
         except OSError as error:
-            rewritten.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                rewritten.unlink(missing_ok=True)
             log.error(
                 "cannot add the smoothed columns to %s: %s; it holds the online estimates only",
                 self.path,
@@ -414,7 +420,8 @@ class EstimatesTable:
         file, self._file = self._file, None
         if file is not None:
             file.close_quietly()
-        self._temporary.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            self._temporary.unlink(missing_ok=True)
         self._n = 0
 
 

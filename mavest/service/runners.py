@@ -15,15 +15,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import gc
 import logging
 import math
 import sys
+import threading
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TYPE_CHECKING, TextIO, TypeVar
 
 import numpy as np
 
@@ -39,7 +41,7 @@ from mavest.onboard.convert import to_tlog_bytes
 from mavest.paths import check_outputs
 from mavest.service import bulk
 from mavest.service.config import ServiceConfig
-from mavest.service.estimates_table import EstimatesTable, EstimatesTableError, table_format
+from mavest.service.estimates_table import EstimatesTable, table_format
 from mavest.service.pipeline import EstimateSink, Pipeline, Stream, heartbeats_after
 from mavest.service.signals import stop_on_signals
 from mavest.service.smoothing import SmoothedStream, smooth_stream
@@ -47,7 +49,6 @@ from mavest.viz.viewer import (
     DEFAULT_GRPC_PORT,
     DEFAULT_WEB_PORT,
     Viewer,
-    ViewerError,
     ViewerRequest,
 )
 
@@ -161,7 +162,7 @@ class _Opened:
             table_format(outputs.estimates)  # a wrong suffix, no pyarrow: before any file
         self.outputs = outputs
         self.table: EstimatesTable | None = None
-        self.tlog = TlogWriter(outputs.tlog) if outputs.tlog is not None else None
+        self.tlog: TlogWriter | None = None
         self.viewer: Viewer | None = None
         self.recorder: RerunRecorder | None = None
         self._recorder_period = 0.0  # s between the recorder's batches (0: every flush)
@@ -169,30 +170,33 @@ class _Opened:
         # the pipeline's estimate sinks: the recorder, until nothing takes the recording;
         # the table; and a replay's caller's (replay's ``sinks``)
         self.sinks: list[EstimateSink] = []
-        if request.wanted:
-            try:
+        # Every output was tried for writing (check_outputs); should one fail all the
+        # same, the others opened so far are closed and the table dropped. The output
+        # tlog, which opening empties, comes last: the viewer can fail for reasons of
+        # its own (no display, a port taken), the table is a hidden file until the end.
+        try:
+            if request.wanted:
                 self.viewer = Viewer(request)
-            except ViewerError:
-                self.close()
-                raise
-            self.recorder = RerunRecorder.for_viewer(
-                self.viewer.recording, live=request.mode is not None
-            )
-            # a viewer should feel live; a file only needs what is buffered on disk
-            # now and then (each batch costs ~30 send_columns: 3 % of the CPU at 1 kHz
-            # if sent every second)
-            if request.mode is None:
-                self._recorder_period = FILE_ONLY_FLUSH_PERIOD
-                self._recorder_flushed = time.monotonic()
-            self.recorder.on_new_stream.append(self.viewer.add_stream)
-            self.sinks.append(self.recorder)
-        if outputs.estimates is not None:
-            try:
+                self.recorder = RerunRecorder.for_viewer(
+                    self.viewer.recording, live=request.mode is not None
+                )
+                # a viewer should feel live; a file only needs what is buffered on disk
+                # now and then (each batch costs ~30 send_columns: 3 % of the CPU at 1 kHz
+                # if sent every second)
+                if request.mode is None:
+                    self._recorder_period = FILE_ONLY_FLUSH_PERIOD
+                    self._recorder_flushed = time.monotonic()
+                self.recorder.on_new_stream.append(self.viewer.add_stream)
+                self.sinks.append(self.recorder)
+            if outputs.estimates is not None:
                 self.table = EstimatesTable(outputs.estimates, smoothing=smoothing)
-            except EstimatesTableError:
-                self.close()
-                raise
-            self.sinks.append(self.table)
+                self.sinks.append(self.table)
+            if outputs.tlog is not None:
+                self.tlog = TlogWriter(outputs.tlog)
+        except BaseException:
+            self.abandon()
+            self.close()
+            raise
 
     @property
     def _recording(self) -> bool:
@@ -421,7 +425,7 @@ async def replay(
                 if first_us is None:
                     first_us = last_us
                 ahead = (last_us - first_us) * 1e-6 / speed - (time.perf_counter() - start)
-                await asyncio.sleep(max(ahead, 0.0))
+                await _pause(ahead, stop)
             else:
                 await asyncio.sleep(0)
             if stop is not None and stop.is_set():
@@ -430,7 +434,7 @@ async def replay(
         _check_rates(pipeline, source.rate_advice)
         if smooth:
             bar.finish()
-            _smooth(report, opened)
+            await _smooth(report, opened, stop)
         if linger is not None and opened.serving and not report.interrupted:
             if feed is not None:
                 feed.close()
@@ -454,19 +458,85 @@ async def replay(
     return report
 
 
-def _smooth(report: RunReport, opened: _Opened) -> None:
+async def _pause(seconds: float, stop: asyncio.Event | None) -> None:
+    """A paced replay ahead of its log's clock waits ``seconds``, or until ``stop`` is
+    set (a pause in the log can be an hour long)."""
+    if stop is None or seconds <= 0.0:
+        await asyncio.sleep(max(seconds, 0.0))
+        return
+    with contextlib.suppress(asyncio.TimeoutError):  # (TimeoutError itself from 3.11)
+        await asyncio.wait_for(stop.wait(), seconds)
+
+
+async def _smooth(report: RunReport, opened: _Opened, stop: asyncio.Event | None) -> None:
     """Smooth each stream the replay estimated, into the report, the table and the
     recording; an interrupted replay is not smoothed (the user asked to stop), said in
-    one line."""
+    one line.
+
+    Smoothing a long log takes seconds: each stream is smoothed in a worker thread
+    (the smoother's kernels release the GIL) while the event loop waits for it or for
+    ``stop``. A stop comes as an interrupted replay's: nothing smoothed goes to the
+    outputs (they are added only once every stream is done), and the thread, whose
+    kernel cannot be cut short, is left to end on its own.
+    """
     if report.interrupted:
         report.smoothing_skipped = "smoothing skipped: the replay was interrupted"
         log.warning("%s", report.smoothing_skipped)
         return
+    smoothed: dict[StreamKey, SmoothedStream] = {}
     for key, stream in report.pipeline.streams.items():
-        smoothed = smooth_stream(stream)
-        if smoothed is not None:
-            report.smoothed[key] = smoothed
-            opened.on_smoothed(stream, smoothed)
+        result = await _unless_stopped(functools.partial(smooth_stream, stream), stop)
+        if stop is not None and stop.is_set():
+            report.interrupted = True
+            report.smoothing_skipped = "smoothing stopped: the replay was interrupted"
+            log.warning("%s", report.smoothing_skipped)
+            return
+        if result is not None:
+            smoothed[key] = result
+    for key, result in smoothed.items():
+        report.smoothed[key] = result
+        opened.on_smoothed(report.pipeline.streams[key], result)
+
+
+_T = TypeVar("_T")
+
+
+async def _unless_stopped(work: Callable[[], _T], stop: asyncio.Event | None) -> _T | None:
+    """``work()``, run in a daemon thread until it returns (its exception raised here),
+    or None as soon as ``stop`` is set (the thread then ends on its own; a daemon
+    thread does not hold up the process's exit). Without ``stop``, run here."""
+    if stop is None:
+        return work()
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[_T] = loop.create_future()
+
+    def settle(result: _T | None, error: BaseException | None) -> None:
+        if done.done():  # (given up on)
+            return
+        if error is not None:
+            done.set_exception(error)
+        else:
+            done.set_result(result)  # type: ignore[arg-type]
+
+    def run() -> None:
+        result, error = None, None
+        try:
+            result = work()
+        except BaseException as raised:  # (handed to the waiting loop)
+            error = raised
+        with contextlib.suppress(RuntimeError):  # the loop is gone: nobody waits
+            loop.call_soon_threadsafe(settle, result, error)
+
+    threading.Thread(target=run, name="mavest-smoothing", daemon=True).start()
+    stopped = asyncio.ensure_future(stop.wait())
+    try:
+        await asyncio.wait({done, stopped}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        stopped.cancel()
+    if not done.done():
+        done.cancel()
+        return None
+    return done.result()
 
 
 @dataclass(frozen=True)
