@@ -6,6 +6,11 @@ position where a plausible timestamp is followed by a MAVLink start byte, the
 way pymavlink's robust reading does. Only the messages a caller asks for are
 decoded (and CRC-checked); every other record passes through untouched, so an
 output tlog can hold every input record.
+
+A timestamp is plausible within days of the last record's. One further off is
+believed, as :mod:`mavest.timeline` believes a far-off time, when the records from
+it on continue it (a ground station's clock set anew, say by NTP, 1970 to today):
+a lone absurd timestamp, which the next records contradict, is damage.
 """
 
 from __future__ import annotations
@@ -14,21 +19,31 @@ import bisect
 import contextlib
 import logging
 import mmap
+import os
+import stat
 import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
+from mavest import timeline
 from mavest.mavlink import framing
 from mavest.mavlink.messages import MAVLink, mavlink2
 
 _STX_V1 = 0xFE
 _STX_V2 = 0xFD
 _TIMESTAMP = struct.Struct(">Q")
-_MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as pymavlink: beyond this a "timestamp" is noise
+_MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as pymavlink: beyond this, confirm a time
+# Where a tlog's first record is looked for. In the first bytes one timestamped packet
+# will do; further on, as the bytes searched grow, so does the chance that noise holds
+# a packet whose CRC happens to match, so a run of records is asked for, and only so
+# far: a file that is not a tlog is refused after this much.
+_PROBE_BYTES = 4096
+_SEARCH_BYTES = 1 << 20
 
 
 class TlogError(Exception):
@@ -96,8 +111,11 @@ class TlogReader:
     >>> for record in reader: ...  # doctest: +SKIP
     """
 
-    def __init__(self, data: bytes | mmap.mmap, wanted: frozenset[int] | None = None) -> None:
+    def __init__(
+        self, data: bytes | mmap.mmap, wanted: frozenset[int] | None = None, name: str = "tlog"
+    ) -> None:
         self._data = data
+        self.name = name  # for the log's lines about it
         self._wanted = wanted
         self._mav = MAVLink(None)
         self._mav.robust_parsing = False
@@ -109,55 +127,95 @@ class TlogReader:
 
     @classmethod
     def open(cls, path: str | Path, wanted: frozenset[int] | None = None) -> TlogReader:
-        """Open a file; a missing path, a directory or a non-tlog is a :class:`TlogError`.
+        """Open a file; a missing path, a directory, anything but a regular file (a
+        pipe, a device) or a non-tlog is a :class:`TlogError`.
 
         The file is mapped, not read: memory stays flat however long the log (pages
-        behind the reader are released as it goes), and opening is instant.
+        behind the reader are released as it goes), and opening is instant. A pipe or
+        a device has no end to map (/dev/zero would be read until memory runs out, a
+        serial port until unplugged): it is refused before it is opened, which for a
+        serial port could reset the board behind it.
         """
         path = Path(path)
-        if path.is_dir():
-            raise TlogError(f"{path} is a directory, not a tlog")
         try:
-            with path.open("rb") as file:
-                try:
-                    data: bytes | mmap.mmap = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)
-                except (ValueError, OSError):  # empty, or not a regular file (a pipe)
-                    data = file.read()
+            _check_regular(path, path.stat().st_mode)
+            # not blocking: a pipe put in the file's place since would wait for a writer
+            with open(path, "rb", opener=_open_nonblocking) as file:
+                status = os.fstat(file.fileno())
+                _check_regular(path, status.st_mode)
+                data: bytes | mmap.mmap = b""
+                if status.st_size:
+                    try:
+                        data = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)
+                    except (ValueError, OSError):  # a file system that cannot map: read it
+                        data = file.read()
         except FileNotFoundError:
             raise TlogError(f"{path}: no such file") from None
         except OSError as error:
             raise TlogError(f"cannot read {path}: {error.strerror}") from None
         if not data:
             raise TlogError(f"{path} is empty")
-        reader = cls(data, wanted)
-        if not reader.looks_like_tlog():
+        reader = cls(data, wanted, name=path.name)
+        start = reader.first_record()
+        if start is None:
             raise TlogError(
                 f"{path} is not a MAVLink telemetry log (.tlog): no timestamped MAVLink "
-                "packet in its first kilobytes"
+                f"packets in its first {_SEARCH_BYTES >> 20} MiB"
             )
+        # what comes before the first record is damage, skipped (a junk record that
+        # happened to look whole must not be read as the log's first)
+        reader.position = reader.stats.skipped_bytes = start
         return reader
 
     @property
     def size(self) -> int:
         return len(self._data)
 
-    def looks_like_tlog(self, probe: int = 4096) -> bool:
-        """True when a timestamped packet with a valid CRC starts within the first bytes.
+    def first_record(self) -> int | None:
+        """Where the first record starts, or None when the data does not look like a tlog.
 
-        A packet followed at once by another does not count: that is MAVLink without
-        timestamps (a raw capture), whose packets' tails would be read as timestamps.
-        In a tlog the next record starts with a timestamp, whose first byte stays 0
-        until the year 2540, never a start byte.
+        In the first bytes (``_PROBE_BYTES``) a timestamped packet with a valid CRC will
+        do, unless a packet follows it at once: that is MAVLink without timestamps (a raw
+        capture), whose packets' tails would be read as timestamps. In a tlog the next
+        record starts with a timestamp, whose first byte stays 0 until the year 2540,
+        never a start byte. Further on (garbage before the log), up to
+        ``_SEARCH_BYTES``, the first record of a run that continues its time
+        (:meth:`_timeline_starts`; never in a raw capture, for the same reason).
         """
-        data = self._data[: probe + 600]  # room for two whole packets after the probe
-        for start in range(min(probe, max(0, len(data) - 9))):
+        data = self._data[: _PROBE_BYTES + 600]  # room for two whole packets after the probe
+        for start in range(min(_PROBE_BYTES, max(0, len(data) - 9))):
             if not self._packet_at(data, start + 8):
                 continue
             end = start + 8 + _packet_length(data, start + 8)
             if end < len(data) and self._packet_at(data, end):
                 continue
-            return True
-        return False
+            return start
+        array = self.array
+        stop = min(len(array) - 9, _SEARCH_BYTES)
+        if stop <= _PROBE_BYTES:
+            return None
+        window = array[_PROBE_BYTES : stop + 8]
+        starts = (window[8:] == _STX_V1) | (window[8:] == _STX_V2)
+        starts &= window[:-8] < 0x80  # a time in 63 bits, as framing.scan reads one
+        for offset in np.flatnonzero(starts):
+            if self._timeline_starts(_PROBE_BYTES + int(offset)):
+                return _PROBE_BYTES + int(offset)
+        return None
+
+    def _timeline_starts(self, position: int) -> bool:
+        """Whether records on a time of their own start at ``position``: as
+        :mod:`mavest.timeline` confirms a far-off time, ``timeline.CONFIRM`` whole
+        records in a row (CRC valid, of known messages: :func:`framing.scan`), each
+        continuing the one before (not :func:`timeline.far_off` it; tlog records may
+        share a time). A clock that jumped and stays passes; a lone absurd timestamp,
+        the records after it on the old time, does not."""
+        records = framing.scan(self.array, position, -1, timeline.CONFIRM)
+        if len(records) < timeline.CONFIRM:
+            return False
+        return not any(
+            timeline.far_off(step * 1e-6, timeline.REORDER_WINDOW, timeline.MAX_STEP)
+            for step in np.diff(records.stamp).tolist()
+        )
 
     def _packet_at(self, data: bytes, start: int) -> bool:
         """True when a whole packet of a known message, CRC valid, starts at ``start``
@@ -186,7 +244,11 @@ class TlogReader:
                 return n
             position = min(candidates) - 8
             (stamp,) = _TIMESTAMP.unpack_from(data, position)
-            if last_us is None or abs(stamp - last_us) <= _MAX_TIMESTAMP_JUMP_US:
+            if (
+                last_us is None
+                or abs(stamp - last_us) <= _MAX_TIMESTAMP_JUMP_US
+                or self._timeline_starts(position)
+            ):
                 return position
             position += 1
         return n
@@ -235,6 +297,8 @@ class TlogReader:
             length = _packet_length(data, position + 8)
             (stamp,) = _TIMESTAMP.unpack_from(data, position)
             plausible = last_us is None or abs(stamp - last_us) <= _MAX_TIMESTAMP_JUMP_US
+            if length > 0 and not plausible:  # the clock set anew, or one absurd time
+                plausible = self._timeline_starts(position)
             if length <= 0 or not plausible:
                 resumed = self._resynchronise(position, last_us)
                 stats.skipped_bytes += resumed - position
@@ -277,10 +341,55 @@ class TlogReader:
                 if is_wanted:
                     message = decoded
             stats.records += 1
+            if last_us is not None and abs(stamp - last_us) > _MAX_TIMESTAMP_JUMP_US:
+                _log.warning("%s", _clock_jump(self.name, last_us, stamp, position))
             self._last_us = stamp
             position = self.position = end
             yield TlogRecord(stamp, packet, message)
         self.position = position
+
+
+def _clock_jump(name: str, before_us: int, after_us: int, position: int) -> str:
+    """The line saying that a tlog's recording clock jumped (to a time that stays)."""
+    way = "forward" if after_us > before_us else "back"
+    return (
+        f"{name}: the recording clock jumped {way} by {_span(abs(after_us - before_us))} "
+        f"at byte {position} ({_utc(before_us)} → {_utc(after_us)}); the records after "
+        "it are read at the new time"
+    )
+
+
+def _span(us: int) -> str:
+    days = us / (86_400 * 10**6)
+    return f"{days:.1f} days" if days < 365.25 else f"{days / 365.25:.1f} years"
+
+
+def _utc(us: int) -> str:
+    try:
+        return datetime.fromtimestamp(us * 1e-6, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    except (OverflowError, ValueError, OSError):  # beyond the year 9999
+        return f"{us} µs"
+
+
+def _check_regular(path: Path, mode: int) -> None:
+    """A :class:`TlogError` unless ``mode`` is a regular file's."""
+    if stat.S_ISDIR(mode):
+        raise TlogError(f"{path} is a directory, not a tlog")
+    if not stat.S_ISREG(mode):
+        kind = (
+            "a pipe (FIFO)"
+            if stat.S_ISFIFO(mode)
+            else "a device"
+            if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a socket"
+            if stat.S_ISSOCK(mode)
+            else "not a file"
+        )
+        raise TlogError(f"{path} is {kind}: a tlog is read from a regular file, which ends")
+
+
+def _open_nonblocking(path: str, flags: int) -> int:
+    return os.open(path, flags | getattr(os, "O_NONBLOCK", 0))
 
 
 # A mapped tlog's pages behind the reader are released in steps of this many bytes
