@@ -11,7 +11,8 @@ Exit codes, the same for every command:
 
 - 0: done (``run`` stopped by Ctrl-C or SIGTERM is done);
 - 1: the input held no IMU stream to estimate from (``run`` and ``replay`` alike);
-- 2: a mistake in what was asked or an unusable input: one line, never a traceback;
+- 2: a mistake in what was asked, an unusable input, or an output that cannot be
+  written (standard output included): one line, never a traceback;
 - 130: interrupted before the end (``replay``, ``fleet``, ``sim --tlog``, ``demo``,
   ``estimate``);
   what was written so far is valid.
@@ -21,15 +22,18 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import dataclasses
 import io
 import logging
 import math
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn, Protocol
 
@@ -37,7 +41,7 @@ import numpy as np
 from numba.core import event as numba_event
 
 from mavest import __version__
-from mavest.estimator import AccelUnitWarning, ConfigError, estimate
+from mavest.estimator import AccelUnitWarning, ConfigError, EstimatorConfig, StepFlags, estimate
 from mavest.mavlink.links import LinkError
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import KEY_ENVIRONMENT_VARIABLE, Signing
@@ -150,6 +154,44 @@ def _load_config(args: argparse.Namespace) -> ServiceConfig:
         raise UsageError(str(error)) from None
 
 
+def _say(text: str, end: str = "\n") -> None:
+    """Write to standard output now: one that cannot be written (a full disk) is a
+    :class:`UsageError`; a reader gone away (``| head``) is left to :func:`main`."""
+    try:
+        print(text, end=end, flush=True)
+    except BrokenPipeError:
+        raise
+    except OSError as error:
+        _silence_stdout()  # what is still buffered would fail again at the exit
+        raise UsageError(f"cannot write to standard output: {error.strerror or error}") from None
+
+
+def _silence_stdout() -> None:
+    """Point standard output at the null device: the interpreter's last flush of what
+    could not be written then succeeds instead of printing a traceback."""
+    with contextlib.suppress(OSError, ValueError, io.UnsupportedOperation):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM ends the block as Ctrl-C does (KeyboardInterrupt: a file being written
+    is removed, the exit code is 130), for a command that runs without an event loop
+    (with one, :func:`~mavest.service.signals.stop_on_signals`)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # (only the main thread can set a handler; a caller's own thread has its own)
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _setup_logging(args: argparse.Namespace) -> None:
     level = logging.INFO
     if getattr(args, "quiet", False):
@@ -254,7 +296,7 @@ def _finish(report: RunReport) -> int:
     """Print the summary; the exit code of a run or replay (see the module's docstring)."""
     report.compile_seconds = COMPILING.seconds
     REPEATS.report(log)
-    print(report.summary())
+    _say(report.summary())
     if report.interrupted:
         return EXIT_INTERRUPTED
     return 0 if report.pipeline.streams else EXIT_NO_IMU
@@ -304,7 +346,7 @@ def _replay(args: argparse.Namespace) -> int:
                 # the served web viewer holds the recording: it goes when mavest does
                 report.compile_seconds = COMPILING.seconds
                 REPEATS.report(log)
-                print(report.summary(), flush=True)
+                _say(report.summary())
                 log.info("replay done; the web viewer serves the recording until Ctrl-C")
                 await stop.wait()
 
@@ -381,7 +423,7 @@ def _fleet(args: argparse.Namespace) -> int:
         )
         return EXIT_INTERRUPTED
     failed_logs = len({row["path"] for row in failed})
-    print(
+    _say(
         f"{result.total} log{'s' if result.total != 1 else ''} replayed: "
         f"{result.total - failed_logs} ok, {failed_logs} with an error (the table's error "
         f"column); wrote {args.out}"
@@ -426,7 +468,7 @@ def _with_outputs(
 def _sim(args: argparse.Namespace) -> int:
     try:
         return _simulate(args)
-    except SimulatorMissingError as error:
+    except (SimulatorMissingError, TlogError) as error:  # (TlogError: --tlog not writable)
         raise UsageError(str(error)) from None
 
 
@@ -439,7 +481,7 @@ def _simulate(args: argparse.Namespace) -> int:
         if args.seconds is None:
             raise UsageError("--tlog needs --seconds (how long a flight to write)")
         summary = write_flight_tlog(args.tlog, args.seconds, args.rate, autopilot, args.seed)
-        print(summary)
+        _say(summary)
         return 0
     try:
         report = asyncio.run(
@@ -447,7 +489,7 @@ def _simulate(args: argparse.Namespace) -> int:
         )
     except LinkError as error:
         raise UsageError(str(error)) from None
-    print(report.describe())
+    _say(report.describe())
     if args.report is not None:
         write_atomically(args.report, report.to_json().encode())
     return 0
@@ -456,6 +498,7 @@ def _simulate(args: argparse.Namespace) -> int:
 def _demo(args: argparse.Namespace) -> int:
     from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
 
+    config = _load_config(args)  # (a mistake in it is said before the flight is flown)
     output_dir: Path = args.output_dir
     try:
         output_dir.mkdir(parents=True, exist_ok=True)
@@ -467,7 +510,7 @@ def _demo(args: argparse.Namespace) -> int:
         {"the --config file": args.config},
         {"flight.tlog": flight, "mavest.tlog": outputs.tlog, "mavest.rrd": outputs.rrd},
     )
-    print(
+    _say(
         f"mavest {__version__} demo: a {args.seconds:g} s Cessna 172 flight from JSBSim, turning "
         f"under its autopilot,\nstreaming ArduPilot RAW_IMU at {args.rate:g} Hz with noise, "
         "bias and quantisation, replayed through mavest.\n"
@@ -476,16 +519,18 @@ def _demo(args: argparse.Namespace) -> int:
     try:
         autopilot = AUTOPILOTS["ardupilot"]
         made = write_flight_tlog(flight, args.seconds, args.rate, autopilot, args.seed)
-    except SimulatorMissingError as error:
+    except (SimulatorMissingError, TlogError) as error:
         raise UsageError(str(error)) from None
-    print(made)
-    print(f"  ({time.perf_counter() - start:.1f} s)\n")
-    config = _load_config(args)
-    report = asyncio.run(replay(flight, config, outputs, progress=False))
+    _say(made)
+    _say(f"  ({time.perf_counter() - start:.1f} s)\n")
+    try:
+        report = asyncio.run(replay(flight, config, outputs, progress=False))
+    except (TlogError, ViewerError, OutputPathError) as error:
+        raise UsageError(str(error)) from None
     report.compile_seconds = COMPILING.seconds
     REPEATS.report(log)
-    print(report.summary())
-    print(
+    _say(report.summary())
+    _say(
         "\nThe truth is the flight model's attitude (SIMSTATE in the tlog). Open the recording "
         f"with `rerun {outputs.rrd}`;\nplot ours against the truth in any tlog tool from "
         f"{outputs.tlog}."
@@ -502,12 +547,12 @@ CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 
 
 def _read_imu_csv(path: Path) -> np.ndarray:
-    """The CSV's samples as columns t, gx, gy, gz, ax, ay, az. A first line of names is a
-    header: with these seven names in any order it says which column is which."""
+    """The CSV's samples as columns t, gx, gy, gz, ax, ay, az. A first line that is not
+    numbers is a header: these seven names in any order, saying which column is which."""
     if path.is_dir():
         raise UsageError(f"{path}: is a directory, not a CSV file")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")  # (a spreadsheet's byte-order mark)
     except FileNotFoundError:
         raise UsageError(f"{path}: no such file") from None
     except UnicodeDecodeError:
@@ -517,9 +562,7 @@ def _read_imu_csv(path: Path) -> np.ndarray:
     lines = [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
     order = list(range(len(CSV_COLUMNS)))
     if lines and not _is_number(lines[0].split(",")[0]):
-        names = [name.strip().lower() for name in lines.pop(0).split(",")]
-        if sorted(names) == sorted(CSV_COLUMNS):
-            order = [names.index(column) for column in CSV_COLUMNS]
+        order = _header_order(path, lines.pop(0))
     if not lines:
         raise UsageError(f"{path}: no samples (expected rows of {', '.join(CSV_COLUMNS)})")
     try:
@@ -533,6 +576,29 @@ def _read_imu_csv(path: Path) -> np.ndarray:
     return table[:, order]
 
 
+def _header_order(path: Path, line: str) -> list[int]:
+    """Where each of :data:`CSV_COLUMNS` is, from a header line that names each once.
+    Any other header is refused: guessing would read one sensor's columns as another's."""
+    names = [name.strip().lower() for name in line.split(",")]
+    if sorted(names) == sorted(CSV_COLUMNS):
+        return [names.index(column) for column in CSV_COLUMNS]
+    understood = [name for name in names if name in CSV_COLUMNS]
+    unknown = [repr(name) for name in names if name not in CSV_COLUMNS]
+    wrong = [f"not understood: {', '.join(unknown)}"] if unknown else []
+    twice = sorted({name for name in understood if understood.count(name) > 1})
+    if twice:
+        wrong.append(f"named twice: {', '.join(twice)}")
+    missing = [column for column in CSV_COLUMNS if column not in names]
+    if missing:
+        wrong.append(f"missing: {', '.join(missing)}")
+    raise UsageError(
+        f"{path}: the first line is neither numbers nor a header of the columns "
+        f"{', '.join(CSV_COLUMNS)} (in any order): "
+        + "; ".join(wrong)
+        + f"; understood: {', '.join(understood) or 'none'}"
+    )
+
+
 def _is_number(text: str) -> bool:
     try:
         float(text)
@@ -542,6 +608,11 @@ def _is_number(text: str) -> bool:
 
 
 def _estimate_csv(args: argparse.Namespace) -> int:
+    with _sigterm_interrupts():  # SIGTERM as Ctrl-C: -o is then written whole or not at all
+        return _estimate_table(args)
+
+
+def _estimate_table(args: argparse.Namespace) -> int:
     config = _load_config(args).estimator
     _refuse_overlaps(
         {"the CSV being read": args.input, "the --config file": args.config}, {"-o": args.output}
@@ -561,13 +632,66 @@ def _estimate_csv(args: argparse.Namespace) -> int:
     text = io.StringIO()
     np.savetxt(text, result, delimiter=",", header=header, comments="", fmt="%.9g")
     if args.output is None:
-        sys.stdout.write(text.getvalue())
-        return 0
-    try:
-        write_atomically(args.output, text.getvalue().encode())
-    except OSError as error:
-        raise UsageError(f"cannot write {args.output}: {error.strerror}") from None
+        _say(text.getvalue(), end="")
+    else:
+        try:
+            write_atomically(args.output, text.getvalue().encode())
+        except OSError as error:
+            raise UsageError(f"cannot write {args.output}: {error.strerror}") from None
+    for line in _flag_summary(out.flags, table[:, 0], config):
+        log.warning("%s: %s", args.input, line)
     return 0
+
+
+# The flags `estimate` counts after its run, besides the samples it skipped: each is an
+# input the user may not know is wrong (the flags column says it per row, unread).
+_TOLD_FLAGS = (
+    StepFlags.NOT_INITIALISED,
+    StepFlags.ACCEL_INVALID,
+    StepFlags.GAP_REALIGNED,
+    StepFlags.TIME_RESTARTED,
+    StepFlags.GYRO_CLIPPED,
+    StepFlags.UNHEALTHY_RESET,
+    StepFlags.DIVERGED,
+)
+
+
+def _flag_summary(flags: np.ndarray, t: np.ndarray, config: EstimatorConfig) -> list[str]:
+    """A line per kind of problem the samples' flags tell of, named as
+    :meth:`StepFlags.describe` names the flags: the samples skipped, by reason, then a
+    count for each of :data:`_TOLD_FLAGS`, with the likely unit mistake where there is one."""
+
+    def count(bit: int) -> int:
+        return int(np.count_nonzero(flags & bit))
+
+    def name(bit: int) -> str:
+        return StepFlags.describe(bit)[0].lower().replace("_", " ")
+
+    lines = []
+    skipped = count(StepFlags.SKIPPED)
+    if skipped:
+        reasons = [getattr(StepFlags, reason) for reason in StepFlags.describe(StepFlags.SKIPPED)]
+        lines.append(
+            f"{skipped} sample{'s' if skipped != 1 else ''} skipped: "
+            + ", ".join(f"{name(bit)} ({count(bit)})" for bit in reasons if count(bit))
+        )
+    steps = np.diff(t[np.isfinite(t)])
+    step = float(np.median(steps[steps > 0.0])) if np.any(steps > 0.0) else 0.0
+    hints = {
+        # a sampling interval of seconds that is a plausible one in milliseconds
+        StepFlags.GAP_REALIGNED: (
+            f" (the median step of t is {step:g}: milliseconds? t must be in seconds)"
+            if step > config.max_dt and step / 1000.0 <= config.max_dt
+            else f" (more than max_dt = {config.max_dt:g} s after the sample before)"
+        ),
+        StepFlags.GYRO_CLIPPED: (
+            f" (beyond gyro_clip = {config.gyro_clip:.4g}: °/s? the gyro must be in rad/s)"
+        ),
+    }
+    for bit in _TOLD_FLAGS:
+        if n := count(bit):
+            lines.append(f"{name(bit)}: {n} sample{'s' if n != 1 else ''}{hints.get(bit, '')}")
+    return lines
 
 
 # --------------------------------------------------------------------------
@@ -929,7 +1053,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # the reader of our output went away (`mavest … | head`)
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        _silence_stdout()
         return 0
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -11,9 +12,10 @@ import numpy as np
 import pytest
 
 from mavest import __version__
-from mavest.cli import main
+from mavest.cli import CSV_COLUMNS, EXIT_INTERRUPTED, main
+from mavest.mavlink.tlog import TlogError
 from mavest.service.process import MAVEST, mavest_command
-from mavest.sim import simulate
+from mavest.sim import simulate, vehicle
 
 
 def test_demo_flies_through_the_pipeline_and_scores_it(
@@ -47,6 +49,8 @@ def test_estimate_reads_csv_and_writes_one_row_per_sample(tmp_path: Path) -> Non
         (["estimate", "{tmp}"], "is a directory"),
         (["estimate", "{tmp}/words.csv"], "not a CSV of numbers"),
         (["estimate", "{tmp}/narrow.csv"], "expected 7 columns"),
+        (["estimate", "{tmp}/narrow.csv", "--config", "{tmp}/binary"], "is not a TOML file"),
+        (["estimate", "{tmp}/narrow.csv", "--config", "{tmp}/huge.toml"], "gyro_noise_density"),
         (["demo", "--config", "{tmp}/bad.toml"], "unknown estimator parameter"),
         (["demo", "--seconds", "-1"], "argument --seconds: -1 is not a number above 0"),
         (["run", "udpin:nowhere"], "needs HOST:PORT"),
@@ -56,7 +60,9 @@ def test_estimate_reads_csv_and_writes_one_row_per_sample(tmp_path: Path) -> Non
 def test_mistakes_get_one_line_and_exit_code_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], arguments: list[str], message: str
 ) -> None:
-    (tmp_path / "words.csv").write_text("t,gx\nnot,numbers\n")
+    (tmp_path / "words.csv").write_text("t,gx,gy,gz,ax,ay,az\nnot,numbers\n")
+    (tmp_path / "binary").write_bytes(b"\x00\x00\x00\x01\xfd\xfe" * 100)
+    (tmp_path / "huge.toml").write_text("[estimator]\ngyro_noise_density = 1e308\n")
     (tmp_path / "narrow.csv").write_text("0,1,2\n")
     (tmp_path / "bad.toml").write_text("[estimator]\ngyro = 1\n")
     assert main([a.format(tmp=tmp_path) for a in arguments]) == 2
@@ -100,3 +106,194 @@ def test_python_dash_m_mavest_is_the_command(tmp_path: Path) -> None:
     assert mavest_command(str(tmp_path))[1:] == ["-m", "mavest.cli"]
     (tmp_path / "mavest" / "__main__.py").touch()
     assert mavest_command(str(tmp_path)) == mavest_command() == MAVEST
+
+
+# ------------------------------------------------------------------ estimate: its input
+
+
+def _imu_csv(path: Path, t_scale: float = 1.0, **changes: tuple[int, float]) -> np.ndarray:
+    """Four seconds of simulated samples at 50 Hz as the CSV estimate reads; ``changes``
+    sets row → t (``t``) or the gyro's x (``gx``) in some rows."""
+    data = simulate(4.0, 50.0, seed=1)
+    table = np.column_stack([data.t * t_scale, data.gyro, data.accel])
+    for column, (row, value) in changes.items():
+        table[row, CSV_COLUMNS.index(column)] = value
+    np.savetxt(path, table, delimiter=",")
+    return table
+
+
+@pytest.mark.parametrize(
+    ("header", "said"),
+    [
+        (
+            "time,acc_x,acc_y,acc_z,gyro_x,gyro_y,gyro_z",
+            "not understood: 'time', 'acc_x', 'acc_y', 'acc_z', 'gyro_x', 'gyro_y', 'gyro_z'; "
+            "missing: t, gx, gy, gz, ax, ay, az; understood: none",
+        ),
+        (
+            "t,gx,gy,gz,ax,ay,accel_z",
+            "not understood: 'accel_z'; missing: az; understood: t, gx, gy, gz, ax, ay",
+        ),
+        ("t,gx,gy,gz,ax,ay,ay", "named twice: ay; missing: az; understood: t, gx"),
+    ],
+)
+def test_a_header_of_other_names_is_refused_naming_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], header: str, said: str
+) -> None:
+    """Read in the default order, such a file would take the accelerometer for the gyro."""
+    table = _imu_csv(tmp_path / "plain.csv")
+    path = tmp_path / "named.csv"
+    np.savetxt(path, table, delimiter=",", header=header, comments="")
+    assert main(["estimate", str(path), "-o", str(tmp_path / "out.csv")]) == 2
+    err = capsys.readouterr().err
+    assert said in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out.csv").exists()
+
+
+def test_a_header_with_a_byte_order_mark_crlf_and_spaces_is_read(tmp_path: Path) -> None:
+    table = _imu_csv(tmp_path / "plain.csv")
+    rows = "".join(
+        ",".join(repr(float(v)) for v in row[[4, 5, 6, 0, 1, 2, 3]]) + "\r\n" for row in table
+    )
+    (tmp_path / "named.csv").write_bytes(
+        ("\ufeff ax, ay ,az,T,gx,gy,gz\r\n" + rows).encode("utf-8")
+    )
+    for name in ("plain", "named"):
+        assert main(["estimate", str(tmp_path / f"{name}.csv"), "-o", str(tmp_path / name)]) == 0
+    assert (tmp_path / "plain").read_bytes() == (tmp_path / "named").read_bytes()
+
+
+@pytest.mark.parametrize(
+    ("changes", "t_scale", "said"),
+    [
+        ({}, 1.0, []),
+        (
+            {"gx": (20, math.nan), "t": (30, math.nan)},
+            1.0,
+            ["2 samples skipped: gyro invalid (1), time not increasing (1)"],
+        ),
+        ({"t": (40, 0.76)}, 1.0, ["1 sample skipped: time not increasing (1)"]),
+        (
+            {"t": (100, 1e9)},
+            1.0,
+            ["1 sample skipped: time off timeline (1)"],
+        ),
+        (
+            {},
+            1000.0,
+            [
+                "gap realigned: 200 samples (the median step of t is 20: milliseconds? t must "
+                "be in seconds)"
+            ],
+        ),
+        (
+            {"gx": (50, 100.0)},
+            1.0,
+            ["gyro clipped: 1 sample (beyond gyro_clip = 33.86: °/s? the gyro must be in rad/s)"],
+        ),
+    ],
+    ids=["clean", "nan", "back", "jump", "ms", "clipped"],
+)
+def test_estimate_says_what_the_flags_tell_of_its_samples(
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    changes: dict[str, tuple[int, float]],
+    t_scale: float,
+    said: list[str],
+) -> None:
+    path = tmp_path / "imu.csv"
+    _imu_csv(path, t_scale, **changes)
+    assert main(["estimate", str(path), "-o", str(tmp_path / "out.csv")]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [f"mavest: {path}: {line}" for line in said]
+
+
+# ------------------------------------------------------------------ outputs that fail
+
+
+def _small_tlog(path: Path) -> None:
+    """Two seconds of RAW_IMU at 200 Hz at rest, a HEARTBEAT a second."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    records = []
+    for i in range(400):
+        stamp = (1_700_000_000_000_000 + i * 5000).to_bytes(8, "big")
+        if i % 200 == 0:
+            records.append(stamp + mavlink2.MAVLink_heartbeat_message(2, 3, 0, 0, 0, 3).pack(mav))
+        imu = mavlink2.MAVLink_raw_imu_message(i * 5000, 0, 0, -1000, 0, 0, 0, 200, 0, 400)
+        records.append(stamp + imu.pack(mav))
+    path.write_bytes(b"".join(records))
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+@pytest.mark.parametrize("command", ["estimate", "replay"])
+def test_a_full_standard_output_is_one_line_and_exit_code_2(tmp_path: Path, command: str) -> None:
+    if command == "estimate":
+        source = tmp_path / "imu.csv"
+        _imu_csv(source)
+    else:
+        source = tmp_path / "in.tlog"
+        _small_tlog(source)
+    with open("/dev/full", "w") as full:
+        done = subprocess.run(
+            [*MAVEST, command, str(source), "-q"], stdout=full, stderr=subprocess.PIPE, text=True
+        )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr == "mavest: cannot write to standard output: No space left on device\n"
+
+
+@pytest.mark.parametrize("command", [["sim", "--seconds", "1", "--tlog"], ["demo", "--output-dir"]])
+def test_a_tlog_that_cannot_be_written_is_one_line(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    command: list[str],
+) -> None:
+    """Beyond what the outputs' check can see (a folder made read-only meanwhile, a
+    quota): the writer's own error."""
+
+    def refused(path: Path, *args: object) -> str:
+        raise TlogError(f"cannot write {path}: Read-only file system")
+
+    monkeypatch.setattr(vehicle, "write_flight_tlog", refused)
+    target = tmp_path / "x.tlog" if command[0] == "sim" else tmp_path
+    assert main([*command, str(target)]) == 2
+    err = capsys.readouterr().err
+    assert "Read-only file system" in err and err.count("\n") == 1, err
+
+
+# SIGTERM while the output is being written: the signal arrives as the partial file,
+# already holding the table, is synced to disk.
+_TERMINATED_WHILE_WRITING = """
+import os, signal, sys
+from mavest.cli import main
+fsync = os.fsync
+def fsync_after_sigterm(fd):
+    if os.fstat(fd).st_size > 0:
+        os.kill(os.getpid(), signal.SIGTERM)
+    fsync(fd)
+os.fsync = fsync_after_sigterm
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_sigterm_while_estimate_writes_is_ctrl_c(tmp_path: Path) -> None:
+    source = tmp_path / "imu.csv"
+    _imu_csv(source)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            _TERMINATED_WHILE_WRITING,
+            "estimate",
+            str(source),
+            "-o",
+            str(tmp_path / "out.csv"),
+        ],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == EXIT_INTERRUPTED, done.stderr
+    assert "Traceback" not in done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["imu.csv"]  # no partial, no output

@@ -278,8 +278,7 @@ class EstimatorConfig:
             "mag_new_reference_time",
             "mag_max_rejection_time",
         ):
-            value = getattr(self, name)
-            _require(math.isfinite(value) and value > 0.0, f"{name} must be > 0, got {value}")
+            require_number(name, getattr(self, name))
         for name in (
             "gyro_bias_random_walk",
             "gyro_scale_noise_density",
@@ -304,8 +303,7 @@ class EstimatorConfig:
             "velocity_adapt_time",
             "smooth_accel_time",
         ):
-            value = getattr(self, name)
-            _require(math.isfinite(value) and value >= 0.0, f"{name} must be ≥ 0, got {value}")
+            require_number(name, getattr(self, name), zero=True)
         for name in ("initial_bias", "compass_ofs", "compass_dia", "compass_odi"):
             value = getattr(self, name)
             _require(
@@ -313,6 +311,11 @@ class EstimatorConfig:
                 f"{name} must be three finite numbers",
             )
         _require(math.isfinite(self.compass_dec), "compass_dec must be finite (rad)")
+        _require(
+            abs(self.sigma_beta) <= NUMBER_RANGE[1],
+            f"sigma_beta must be a number from -{NUMBER_RANGE[1]:g} to {NUMBER_RANGE[1]:g}, "
+            f"got {self.sigma_beta}",
+        )
         _require(
             abs(float(np.linalg.det(self.soft_iron))) > 1e-6,
             "compass_dia/compass_odi make a singular soft-iron matrix",
@@ -401,6 +404,34 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"cannot read {path}: {error.strerror}") from None
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"{path} is not valid TOML: {error}") from None
+    except UnicodeDecodeError as error:  # TOML is UTF-8 text: a binary file, or a log
+        raise ConfigError(
+            f"{path} is not a TOML file: byte {error.start} is not UTF-8 text"
+        ) from None
+
+
+# The magnitudes a number in a configuration may have (besides 0 where 0 means "off"):
+# the filter squares its σ and densities into variances and inverts its times and
+# rates, and a number outside these would overflow to inf (an OverflowError, or a
+# filter that is NaN from its first sample) or vanish to 0. No sensor, motion or time
+# is within many orders of magnitude of either end.
+NUMBER_RANGE = (1e-150, 1e150)
+
+
+def require_number(name: str, value: float, *, zero: bool = False) -> None:
+    """The rule for a numeric setting: finite and positive (``zero``: or 0, its "off"),
+    within :data:`NUMBER_RANGE`; else a :class:`ConfigError` naming the setting."""
+    least = "≥ 0" if zero else "> 0"
+    _require(
+        math.isfinite(value) and (value > 0.0 or (zero and value == 0.0)),
+        f"{name} must be {least}, got {value}",
+    )
+    low, high = NUMBER_RANGE
+    _require(
+        value == 0.0 or low <= value <= high,
+        f"{name} = {value:g} is out of range: mavest squares or inverts it, which must "
+        f"stay a finite number; use {'0 or ' if zero else ''}{low:g} to {high:g}",
+    )
 
 
 def _require(condition: bool, message: str) -> None:

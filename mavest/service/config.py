@@ -15,7 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mavest.estimator.config import ConfigError, EstimatorConfig, check_types, read_toml
+from mavest.estimator.config import (
+    ConfigError,
+    EstimatorConfig,
+    check_types,
+    read_toml,
+    require_number,
+)
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import (
     KEY_ENVIRONMENT_VARIABLE,
@@ -63,7 +69,7 @@ class InputConfig:
             math.isfinite(self.request_rate) and 0.0 <= self.request_rate <= 4000.0,
             "input.request_rate must be 0–4000 Hz",
         )
-        _require(self.settle_time >= 0.0, "input.settle_time must be ≥ 0")
+        require_number("input.settle_time", self.settle_time, zero=True)
         _require(
             self.acceleration_aiding in ACCELERATION_AIDING,
             f"input.acceleration_aiding must be one of {', '.join(ACCELERATION_AIDING)}",
@@ -88,11 +94,8 @@ class OutputConfig:
     def __post_init__(self) -> None:
         _require(0 <= self.system_id <= 255, "output.system_id must be 0–255 (0: the vehicle's)")
         _require(1 <= self.component_id <= 255, "output.component_id must be 1–255")
-        _require(
-            math.isfinite(self.attitude_rate) and self.attitude_rate >= 0.0,
-            "output.attitude_rate must be ≥ 0",
-        )
-        _require(self.heartbeat_rate >= 0.0, "output.heartbeat_rate must be ≥ 0")
+        require_number("output.attitude_rate", self.attitude_rate, zero=True)
+        require_number("output.heartbeat_rate", self.heartbeat_rate, zero=True)
 
 
 @dataclass(frozen=True)
