@@ -28,12 +28,10 @@ import io
 import logging
 import math
 import os
-import signal
 import sys
-import threading
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn, Protocol
 
@@ -52,7 +50,7 @@ from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import EstimatesTableError, table_format
 from mavest.service.log_repeats import RepeatLimiter
 from mavest.service.runners import Outputs, RunReport, replay, run_live
-from mavest.service.signals import stop_on_signals
+from mavest.service.signals import sigterm_interrupts, stop_on_signals
 from mavest.sim.flight import SimulatorMissingError
 from mavest.viz.viewer import VIEWER_MODES, ViewerError
 
@@ -171,25 +169,6 @@ def _silence_stdout() -> None:
     could not be written then succeeds instead of printing a traceback."""
     with contextlib.suppress(OSError, ValueError, io.UnsupportedOperation):
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-
-
-@contextlib.contextmanager
-def _sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM ends the block as Ctrl-C does (KeyboardInterrupt: a file being written
-    is removed, the exit code is 130), for a command that runs without an event loop
-    (with one, :func:`~mavest.service.signals.stop_on_signals`)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield  # (only the main thread can set a handler; a caller's own thread has its own)
-        return
-
-    def interrupt(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _setup_logging(args: argparse.Namespace) -> None:
@@ -608,7 +587,7 @@ def _is_number(text: str) -> bool:
 
 
 def _estimate_csv(args: argparse.Namespace) -> int:
-    with _sigterm_interrupts():  # SIGTERM as Ctrl-C: -o is then written whole or not at all
+    with sigterm_interrupts():  # SIGTERM as Ctrl-C: -o is then written whole or not at all
         return _estimate_table(args)
 
 

@@ -30,6 +30,7 @@ from distributed.scheduler import KilledWorker
 
 from mavest.fleet.rows import LogTask, error_row, log_rows, warm_up
 from mavest.service.runners import ProgressBar
+from mavest.service.signals import sigterm_interrupts
 
 log = logging.getLogger("mavest")
 
@@ -89,23 +90,6 @@ def dask_logs(level: int) -> Iterator[None]:
     finally:
         for logger, old in zip(loggers, levels, strict=True):
             logger.setLevel(old)
-
-
-@contextlib.contextmanager
-def _sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM stops the fleet as Ctrl-C does (the table of what finished)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _connect(scheduler: str | None, workers: int, level: int) -> tuple[Client, LocalCluster | None]:
@@ -194,7 +178,7 @@ def run_fleet(
     result = FleetResult(total=total)
     finished: dict[int, list[dict[str, Any]]] = {}
     bar = Progress(total, enabled=progress)
-    with dask_logs(level), _sigterm_interrupts():
+    with dask_logs(level), sigterm_interrupts():
         own = not isinstance(scheduler, Client)
         cluster = None
         if isinstance(scheduler, Client):

@@ -1,10 +1,12 @@
-"""Stopping a coroutine on SIGINT/SIGTERM, the way a service should: finish, flush, exit 0."""
+"""Stopping on SIGINT/SIGTERM, the way a service should: finish, flush, exit 0 (or, for
+a command that ends on its own, 130 with what it wrote valid)."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import signal
+import threading
 from collections.abc import Iterator
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -30,3 +32,23 @@ def stop_on_signals(stop: asyncio.Event | None = None) -> Iterator[asyncio.Event
             # Asked to stop, and stopping: a second Ctrl-C from here to the exit (the
             # summary, Rerun's own shutdown) would only print a traceback.
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM ends the block as Ctrl-C does (a KeyboardInterrupt: a file being written
+    is removed or left whole, the exit code is 130), for a command that runs without an
+    event loop (with one, :func:`stop_on_signals`). Only the main thread can set a
+    handler: elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
