@@ -263,6 +263,20 @@ def test_a_tlog_that_cannot_be_written_is_one_line(
     assert "Read-only file system" in err and err.count("\n") == 1, err
 
 
+def test_a_simulated_flight_onto_a_full_disk_is_not_said_written(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The writer stops at its last whole record when the disk is full; the command
+    ends on it (exit 2) instead of saying it wrote the flight."""
+    pytest.importorskip("jsbsim", reason="jsbsim (sim extra) flies the simulated vehicle")
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full on this system")
+    assert main(["sim", "--tlog", "/dev/full", "--seconds", "2", "--rate", "100"]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "not all written" in err, err
+    assert "Traceback" not in err and "wrote /dev/full" not in err
+
+
 # SIGTERM while the output is being written: the signal arrives as the partial file,
 # already holding the table, is synced to disk.
 _TERMINATED_WHILE_WRITING = """

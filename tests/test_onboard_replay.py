@@ -31,6 +31,7 @@ from mavest.onboard.convert import RECORD_EPOCH_US, to_tlog_bytes
 from mavest.service.config import ServiceConfig
 from mavest.service.runners import Outputs, RunReport, replay
 from mavest.sim import Motion, simulate
+from mavest.sim.vehicle import write_resting_tlog
 from mavest.so3 import euler_zyx_from_quats
 from mavest.viz.viewer import rerun_binary
 
@@ -314,6 +315,30 @@ def test_an_unusable_onboard_log_is_one_line_and_exit_2(
     assert len(err) == 1 and err[0].startswith("mavest: ") and said in err[0], err
     assert "Traceback" not in err[0]
     assert not out.exists()  # refused before any output was opened
+
+
+def test_a_tlog_named_as_an_onboard_log_is_read_as_a_tlog(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The content decides, whatever the name: a tlog saved as .bin (or .ulg) replays as
+    the same file named .tlog does, saying so once."""
+    tlog = tmp_path / "flight.tlog"
+    write_resting_tlog(tlog, seconds=3.0)
+    outputs = []
+    for name in ("flight.tlog", "flight.bin", "flight.ULG"):
+        path = tmp_path / name
+        if name != "flight.tlog":
+            path.write_bytes(tlog.read_bytes())
+        out = tmp_path / f"out-{name}.tlog"
+        assert main(["replay", str(path), "--out-tlog", str(out)]) == 0
+        said = [line for line in capsys.readouterr().err.splitlines() if "holds a tlog" in line]
+        assert said == (
+            [f"mavest: {name}: named as an onboard log, holds a tlog: read as one"]
+            if name != "flight.tlog"
+            else []
+        ), said
+        outputs.append(out.read_bytes())
+    assert outputs[0] == outputs[1] == outputs[2]
 
 
 # ------------------------------------------------------------------ the shared logs

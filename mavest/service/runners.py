@@ -35,7 +35,7 @@ from mavest.mavlink.framing import RecordIndex
 from mavest.mavlink.links import Link, make_link, parse_endpoint
 from mavest.mavlink.messages import IMU_MESSAGES, Encoder, StreamKey
 from mavest.mavlink.signing import Signing
-from mavest.mavlink.tlog import TlogReader, TlogRecord, TlogWriter, message_ids
+from mavest.mavlink.tlog import TlogError, TlogReader, TlogRecord, TlogWriter, message_ids
 from mavest.onboard import LogDamage, OnboardLogError, detect, load
 from mavest.onboard.convert import to_tlog_bytes
 from mavest.paths import check_outputs
@@ -557,17 +557,23 @@ _ONBOARD_SUFFIXES = (".bin", ".ulg")
 
 def _open_log(path: str | Path, config: ServiceConfig) -> _Source:
     """The log at ``path`` as tlog records: a tlog as it is (mapped, never read whole), an
-    onboard log decoded and converted in memory. The format is the content's; a file of
-    neither is refused in the terms of the name it has (.bin/.ulg, else tlog)."""
+    onboard log decoded and converted in memory. The format is the content's, whatever
+    the name (a tlog saved as .bin is read as a tlog); a file of neither is refused in
+    the terms of the name it has (.bin/.ulg, else tlog)."""
     path = Path(path)
     kind = None
     if path.is_file():
         with contextlib.suppress(OnboardLogError):  # unreadable: TlogReader.open says why
             kind = detect(path)
-        if kind is None and path.suffix.lower() in _ONBOARD_SUFFIXES:
-            load(path)  # refuses it (OnboardLogError), in its own words
     if kind is None:
-        reader = TlogReader.open(path, REPLAY_MESSAGES)
+        try:
+            reader = TlogReader.open(path, REPLAY_MESSAGES)
+        except TlogError:
+            if path.suffix.lower() in _ONBOARD_SUFFIXES and path.is_file():
+                load(path)  # refuses it (OnboardLogError), in its own words
+            raise
+        if path.suffix.lower() in _ONBOARD_SUFFIXES:
+            log.info("%s: named as an onboard log, holds a tlog: read as one", path.name)
         return _Source(reader, str(path), LogDamage(), "packets", 0.0, _RAISE_STREAM_RATE)
     began = time.perf_counter()
     onboard = load(path)

@@ -37,7 +37,7 @@ from mavest import so3
 from mavest.evaluation.online import wrap_angle
 from mavest.mavlink.links import Link, make_link, parse_endpoint
 from mavest.mavlink.messages import IMU_FORMATS, MAVLink, mavlink2
-from mavest.mavlink.tlog import TlogWriter
+from mavest.mavlink.tlog import TlogError, TlogWriter
 from mavest.service.signals import stop_on_signals
 from mavest.sim.flight import Flight, FlightModel, ImuErrors, NoisyImu
 from mavest.sim.kinematic import EARTH_FIELD_NED, rotate_to_body
@@ -289,6 +289,11 @@ def _write_records(path: str | Path, records: Iterator[tuple[int, bytes]]) -> No
     with TlogWriter(path) as tlog:
         for stamp, packet in itertools.chain([first] if first else [], records):
             tlog.write(stamp, packet)
+            if tlog.error is not None:  # (a full disk: the file ends at a whole record)
+                break
+        tlog.flush()
+    if tlog.error is not None:  # (said as it happened; the command ends on it)
+        raise TlogError(f"{path}: the simulated flight is not all written")
 
 
 def autopilot_records(
