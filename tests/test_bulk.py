@@ -235,6 +235,34 @@ def test_heartbeats_mid_flight_are_the_same_both_ways(
         assert 0 < report.streams[0].stats.airspeed_aided < 4801
 
 
+def test_heartbeats_go_on_after_the_recording_clock_is_set_back(
+    turning_flights: dict[str, Path], tmp_path: Path
+) -> None:
+    """A recording clock set back a day mid-log (a ground station's clock corrected):
+    mavest's HEARTBEATs go on at their rate from there, the same both ways, instead of
+    waiting a day of record time for the clock to come back."""
+    records = [
+        (r.timestamp_us, r.packet)
+        for r in TlogReader.open(turning_flights["ardupilot"], frozenset())
+    ]
+    half = len(records) // 2
+    day_us = 86_400 * 10**6
+    shifted = records[:half] + [(stamp - day_us, packet) for stamp, packet in records[half:]]
+    path = tmp_path / "set_back.tlog"
+    path.write_bytes(_tlog_bytes(shifted))
+    _assert_same_both_ways(path, ServiceConfig(), tmp_path)
+    jump_us = shifted[half][0]
+    ours = [
+        record.timestamp_us
+        for record in TlogReader.open(tmp_path / "fast.tlog", frozenset({0}))
+        if record.message is not None and record.message.get_srcComponent() == 191
+    ]
+    after = [stamp for stamp in ours if stamp >= jump_us and stamp < jump_us + day_us // 2]
+    seconds_after = (shifted[-1][0] - jump_us) * 1e-6  # (about 6 s at 1 Hz)
+    assert len(after) >= seconds_after - 1, (len(after), seconds_after)
+    assert len(ours) - len(after) >= seconds_after - 1  # and before it, as ever
+
+
 def _shared_tlogs() -> list[Path]:
     root = Path(os.environ.get("MAVEST_DATA", Path(__file__).parents[2] / "shared" / "data"))
     return sorted((root / "tlogs").glob("*.tlog"))

@@ -969,14 +969,18 @@ def heartbeats_after(stamps: Any, next_us: int, period_us: int) -> tuple[list[in
     """Of records with these times (µs of record time, in order: one, or a block's), those
     after which a HEARTBEAT of mavest's goes out, while a vehicle is known: the first at
     or past ``next_us``, the next at or past one ``period_us`` after that record's time;
-    and when the next is then due."""
+    and when the next is then due. A record from before the last HEARTBEAT's time (the
+    recording clock set back) is one too, and the schedule starts again from it: else
+    none would go out until the clock came back to where it had been."""
     if isinstance(stamps, int):  # one record: no array to build
-        return ([0], stamps + period_us) if stamps >= next_us else ([], next_us)
+        due = stamps >= next_us or stamps < next_us - period_us
+        return ([0], stamps + period_us) if due else ([], next_us)
     stamps = np.asarray(stamps)
     beats: list[int] = []
     position = 0
     while True:
-        due = np.flatnonzero(stamps[position:] >= next_us)
+        rest = stamps[position:]
+        due = np.flatnonzero((rest >= next_us) | (rest < next_us - period_us))
         if not due.shape[0]:
             return beats, next_us
         position += int(due[0])
