@@ -379,6 +379,9 @@ def test_ctrl_c_writes_the_table_of_what_finished(flights: Path, tmp_path: Path)
         f"mavest: interrupted: wrote the {finished} of 40 logs that finished to {table}"
     )
     assert all(line.split(",")[1] == "ok" for line in lines[1:])
+    # what the stopped worker was writing is not left behind (hidden, and 190 MB for
+    # four logs of 300 s at 1 kHz)
+    assert not list(out_dir.glob(".*.partial")), sorted(out_dir.iterdir())
 
 
 def test_a_log_name_that_is_not_utf8_is_written_with_its_bytes_visible(

@@ -14,6 +14,7 @@ waiting: the rows finished so far are the result, the rest is cancelled.
 from __future__ import annotations
 
 import contextlib
+import glob
 import logging
 import math
 import signal
@@ -29,6 +30,7 @@ from distributed.comm.addressing import parse_address, parse_host_port
 from distributed.scheduler import KilledWorker
 
 from mavest.fleet.rows import LogTask, error_row, log_rows, warm_up
+from mavest.paths import output_target
 from mavest.service.runners import ProgressBar
 from mavest.service.signals import sigterm_interrupts
 
@@ -90,6 +92,20 @@ def dask_logs(level: int) -> Iterator[None]:
     finally:
         for logger, old in zip(loggers, levels, strict=True):
             logger.setLevel(old)
+
+
+def _remove_partials(tasks: list[LogTask]) -> None:
+    """The hidden files that the workers of a local cluster, stopped with Ctrl-C, were
+    writing the logs' ``--out-dir`` outputs into (:func:`mavest.paths.partial_path`, named
+    after the worker's process, so found by the output's name)."""
+    for task in tasks:
+        for output in (task.rrd, task.estimates):
+            if output is None:
+                continue
+            target = output_target(output)
+            for partial in target.parent.glob(f".{glob.escape(target.name)}.*.partial"):
+                with contextlib.suppress(OSError):
+                    partial.unlink()
 
 
 def _connect(scheduler: str | None, workers: int, level: int) -> tuple[Client, LocalCluster | None]:
@@ -226,6 +242,8 @@ def run_fleet(
                     if cluster is not None:
                         with contextlib.suppress(Exception):
                             cluster.close(timeout=5)
+            if result.interrupted and cluster is not None:  # (its workers are gone)
+                _remove_partials(tasks)
     result.done = len(finished)
     result.rows = [row for i in sorted(finished) for row in finished[i]]
     return result
