@@ -541,7 +541,9 @@ MOMENTS = ["start-up", "mid-stream", "flush"]
 
 
 @pytest.mark.parametrize("moment", MOMENTS)
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["INT", "TERM"])
+@pytest.mark.parametrize(
+    "signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["INT", "TERM", "HUP"]
+)
 @pytest.mark.parametrize("command", ["run", "replay"])
 def test_a_signal_at_any_moment_leaves_valid_files(
     command: str, signum: int, moment: str, flight_tlog: Path, tmp_path: Path

@@ -9,7 +9,11 @@ import signal
 import threading
 from collections.abc import Iterator
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+# Ctrl-C, a polite kill, and the terminal closed (SIGHUP's default would end the run
+# where it stands, its recording without its footer and its table a hidden part)
+STOP_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
 
 
 @contextlib.contextmanager
@@ -36,10 +40,10 @@ def stop_on_signals(stop: asyncio.Event | None = None) -> Iterator[asyncio.Event
 
 @contextlib.contextmanager
 def sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM ends the block as Ctrl-C does (a KeyboardInterrupt: a file being written
-    is removed or left whole, the exit code is 130), for a command that runs without an
-    event loop (with one, :func:`stop_on_signals`). Only the main thread can set a
-    handler: elsewhere the block runs as it is."""
+    """SIGTERM and SIGHUP end the block as Ctrl-C does (a KeyboardInterrupt: a file
+    being written is removed or left whole, the exit code is 130), for a command that
+    runs without an event loop (with one, :func:`stop_on_signals`). Only the main
+    thread can set a handler: elsewhere the block runs as it is."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -47,8 +51,10 @@ def sigterm_interrupts() -> Iterator[None]:
     def interrupt(signum: int, frame: object) -> None:
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    others = [signum for signum in STOP_SIGNALS if signum != signal.SIGINT]
+    previous = {signum: signal.signal(signum, interrupt) for signum in others}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
