@@ -973,20 +973,24 @@ def heartbeats_after(stamps: Any, next_us: int, period_us: int) -> tuple[list[in
     recording clock set back) is one too, and the schedule starts again from it: else
     none would go out until the clock came back to where it had been."""
     if isinstance(stamps, int):  # one record: no array to build
-        due = stamps >= next_us or stamps < next_us - period_us
-        return ([0], stamps + period_us) if due else ([], next_us)
+        return ([0], stamps + period_us) if _beat_due(stamps, next_us, period_us) else ([], next_us)
     stamps = np.asarray(stamps)
     beats: list[int] = []
     position = 0
     while True:
-        rest = stamps[position:]
-        due = np.flatnonzero((rest >= next_us) | (rest < next_us - period_us))
+        due = np.flatnonzero(_beat_due(stamps[position:], next_us, period_us))
         if not due.shape[0]:
             return beats, next_us
         position += int(due[0])
         beats.append(position)
         next_us = int(stamps[position]) + period_us
         position += 1
+
+
+def _beat_due(stamps: Any, next_us: int, period_us: int) -> Any:
+    """Whether a HEARTBEAT is due after a record of this time (a number, or an array):
+    at or past ``next_us``, or from before the last one (the clock set back)."""
+    return (stamps >= next_us) | (stamps < next_us - period_us)
 
 
 def answerable(flags: Any) -> Any:
