@@ -8,7 +8,7 @@ import logging
 import os
 import random
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -52,28 +52,6 @@ def _set_by_ntp(i: int) -> int:
     return (60_000_000 if i < N // 4 else T0) + i * 5000
 
 
-@pytest.fixture
-def lines() -> Iterator[list[str]]:
-    """The lines mavest logs meanwhile."""
-
-    class Lines(logging.Handler):
-        def __init__(self) -> None:
-            super().__init__(logging.INFO)
-            self.lines: list[str] = []
-
-        def emit(self, record: logging.LogRecord) -> None:
-            self.lines.append(record.getMessage())
-
-    handler = Lines()
-    logger = logging.getLogger("mavest")
-    logger.addHandler(handler)
-    level = logger.level
-    logger.setLevel(logging.INFO)
-    yield handler.lines
-    logger.removeHandler(handler)
-    logger.setLevel(level)
-
-
 # ------------------------------------------------------------------ the recording clock
 
 
@@ -88,14 +66,16 @@ def lines() -> Iterator[list[str]]:
     ids=["years-forward", "1970-to-now", "years-back", "days-forward"],
 )
 def test_a_clock_that_jumps_and_stays_is_read_on(
-    stamp: Callable[[int], int], said: str, tmp_path: Path, lines: list[str]
+    stamp: Callable[[int], int], said: str, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
+    caplog.set_level(logging.INFO, logger="mavest")
     records = _records(stamp)
     path = tmp_path / "jump.tlog"
     path.write_bytes(_bytes(records))
     reader = TlogReader.open(path)
     assert [(r.timestamp_us, r.packet) for r in reader] == records
     assert reader.stats.skipped_bytes == reader.stats.bad_crc == 0
+    lines = [record.getMessage() for record in caplog.records]
     jumps = [line for line in lines if "recording clock jumped" in line]
     assert len(jumps) == 1 and said in jumps[0] and jumps[0].startswith("jump.tlog: "), lines
 
@@ -103,8 +83,9 @@ def test_a_clock_that_jumps_and_stays_is_read_on(
 @pytest.mark.parametrize("spike", [2**62, 0, T0 + 10 * YEAR_US, T0 - 10 * YEAR_US])
 @pytest.mark.parametrize("where", [5, N // 2, N + N // 200 - 2])  # (of N + N / 200 records)
 def test_a_single_absurd_timestamp_is_still_skipped(
-    spike: int, where: int, tmp_path: Path, lines: list[str]
+    spike: int, where: int, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
+    caplog.set_level(logging.INFO, logger="mavest")
     records = _records(_steady)
     damaged = list(records)
     damaged[where] = (spike, records[where][1])
@@ -113,7 +94,7 @@ def test_a_single_absurd_timestamp_is_still_skipped(
     reader = TlogReader.open(path)
     assert [(r.timestamp_us, r.packet) for r in reader] == records[:where] + records[where + 1 :]
     assert reader.stats.skipped_bytes == 8 + len(records[where][1])
-    assert not [line for line in lines if "clock jumped" in line]
+    assert not [r for r in caplog.records if "clock jumped" in r.getMessage()]
 
 
 def test_a_replay_across_a_jump_estimates_and_writes_every_record(
