@@ -459,8 +459,6 @@ def _damaged(kind: str):
         t[1000:] += 30.0
     elif kind == "restart":
         t[1500:] -= 100.0
-    elif kind == "all_nan_accel":
-        accel[:] = np.nan
     elif kind == "absurd_values":  # finite, but no sensor's: a corrupt sample
         accel[600] = [1e30, 0.0, 0.0]
         gyro[1100] = [0.0, -1e30, 0.0]
@@ -476,7 +474,6 @@ def _damaged(kind: str):
         "absurd_last_timestamp",
         "gap",
         "restart",
-        "all_nan_accel",
         "absurd_values",
     ],
 )
@@ -504,6 +501,15 @@ def test_accelerometer_in_g_is_refused_as_by_estimate() -> None:
     data = simulate(5.0, 100.0, seed=14)
     with pytest.raises(InputError):
         smooth(data.t, data.gyro, data.accel / G)
+
+
+@pytest.mark.parametrize("with_mag", [False, True], ids=["6d", "9d"])
+def test_a_recording_with_no_accelerometer_is_refused_as_by_estimate(with_mag: bool) -> None:
+    """Nothing to estimate from: not N placeholder estimates, but the reason in one line."""
+    _, t, gyro, accel, mag = _damaged("nan")
+    accel[:] = np.nan
+    with pytest.raises(InputError, match="accelerometer zero or not finite"):
+        smooth(t, gyro, accel, mag if with_mag else None)
 
 
 def test_empty_and_single_sample_inputs() -> None:

@@ -11,9 +11,12 @@ tuned at 200 Hz got worse at 1 kHz: docs/design.md#conventions).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import numbers
 import sys
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -42,6 +45,24 @@ STANDARD_GRAVITY = 9.80665  # m/s², the value MAVLink's mG units are defined wi
 # flight (IMUs range to ±16 or ±32 g): the service drops such samples, and the
 # smoother's average of the accelerometer leaves them out.
 MAX_SPECIFIC_FORCE = 50.0 * STANDARD_GRAVITY  # m/s²
+
+# A gyro rate beyond this on any axis is a broken sensor or a corrupt packet, never
+# flight (≈ 2900°/s; MEMS gyros range to ±2000°/s): the filter skips such a sample as it
+# skips a NaN one (StepFlags.GYRO_INVALID), and the service drops it before.
+MAX_ANGULAR_RATE = 50.0  # rad/s
+
+# The filter's health check (mavest.estimator.health) takes a state beyond these for a
+# numerical accident, not an estimate, and re-initialises it; the configuration's
+# initial state and noise are held within them (else every sample would fail it).
+MAX_GYRO_BIAS = 0.5  # rad/s per axis (29°/s: beyond any MEMS gyro's offset, calibrated or not)
+MAX_ATTITUDE_VAR = 4.0 * math.pi**2  # rad², any δθ axis
+MAX_CONSIDERED_VAR = 1e6  # (m/s²)², (m/s³)², (m/s)²: the low-pass's ε, ḟ and the velocity
+
+# The Gauss–Newton iterations of a gravity update at most (max_iterations): quadratic
+# convergence reaches any tolerance in a few; a sample's count is stored in 16 bits.
+MAX_ITERATIONS = 100
+# timeline_confirm at most (samples in a row; a count the filter keeps in 64 bits)
+_MAX_CONFIRM = 1_000_000
 
 
 class ConfigError(ValueError):
@@ -78,7 +99,7 @@ class EstimatorConfig:
     error: ErrorSide = "left"
     chart: Chart = "heading_tilt"
     reset: ResetPolicy = "full"
-    max_iterations: int = 6
+    max_iterations: int = 6  # at most MAX_ITERATIONS
     # rad (and rad/s): the iteration ends when ‖Δx‖, or the next step Gauss–Newton's
     # quadratic convergence predicts from it (10 ‖Δθ‖²), is below this
     iteration_tolerance: float = 1e-6
@@ -241,6 +262,11 @@ class EstimatorConfig:
     smooth_accel_time: float = 0.5  # s
 
     def __post_init__(self) -> None:
+        # The TOML path's rule for each value's type holds for the constructor's too: a
+        # bool or a string where a number goes would pass, or fail deep in the filter.
+        fields = {name: getattr(self, name) for name in _field_types(type(self))}
+        for name, value in check_types(type(self), fields, None).items():
+            object.__setattr__(self, name, value)
         _require(self.update in UPDATE_KINDS, f"update must be one of {UPDATE_KINDS}")
         _require(self.error in ERROR_SIDES, f"error must be one of {ERROR_SIDES}")
         _require(self.reset in RESET_POLICIES, f"reset must be one of {RESET_POLICIES}")
@@ -250,14 +276,22 @@ class EstimatorConfig:
             "chart 'heading_tilt' splits rotation about the world vertical and needs "
             "error = 'left'",
         )
-        _require(self.max_iterations >= 1, "max_iterations must be at least 1")
-        _require(self.timeline_confirm >= 1, "timeline_confirm must be at least 1")
+        _require(
+            1 <= self.max_iterations <= MAX_ITERATIONS,
+            f"max_iterations must be from 1 to {MAX_ITERATIONS}, got {self.max_iterations}",
+        )
+        _require(
+            1 <= self.timeline_confirm <= _MAX_CONFIRM,
+            f"timeline_confirm must be from 1 to {_MAX_CONFIRM}, got {self.timeline_confirm}",
+        )
         _require(self.max_jump > 0.0, f"max_jump must be > 0 (inf: never), got {self.max_jump}")
         _require(self.gyro_clip > 0.0, f"gyro_clip must be > 0 (inf: never), got {self.gyro_clip}")
         _require(0.0 < self.accel_lowpass_damping <= 1.0, "accel_lowpass_damping must be in (0, 1]")
         for name in (
             "gyro_noise_density",
             "accel_noise_density",
+            "iteration_tolerance",
+            "accel_norm_tolerance",
             "gravity",
             "initial_tilt_sigma",
             "initial_heading_sigma",
@@ -282,9 +316,7 @@ class EstimatorConfig:
         for name in (
             "gyro_bias_random_walk",
             "gyro_scale_noise_density",
-            "iteration_tolerance",
             "accel_norm_inflation",
-            "accel_norm_tolerance",
             "accel_gate",
             "accel_max_disturbance_time",
             "divergence_window",
@@ -311,6 +343,7 @@ class EstimatorConfig:
                 f"{name} must be three finite numbers",
             )
         _require(math.isfinite(self.compass_dec), "compass_dec must be finite (rad)")
+        self._require_healthy_start()
         _require(
             abs(self.sigma_beta) <= NUMBER_RANGE[1],
             f"sigma_beta must be a number from -{NUMBER_RANGE[1]:g} to {NUMBER_RANGE[1]:g}, "
@@ -320,6 +353,38 @@ class EstimatorConfig:
             abs(float(np.linalg.det(self.soft_iron))) > 1e-6,
             "compass_dia/compass_odi make a singular soft-iron matrix",
         )
+
+    def _require_healthy_start(self) -> None:
+        """The state the filter starts in, and a second of its gyro noise, within the
+        bounds of its health check (MAX_GYRO_BIAS, MAX_ATTITUDE_VAR, MAX_CONSIDERED_VAR):
+        beyond them every sample would fail the check and start the filter again."""
+        _require(
+            all(abs(b) <= MAX_GYRO_BIAS for b in self.initial_bias),
+            f"initial_bias must be within ±{MAX_GYRO_BIAS:g} rad/s on each axis (beyond any "
+            f"gyro's offset), got {self.initial_bias}",
+        )
+        _require(
+            self.initial_bias_sigma < MAX_GYRO_BIAS,
+            f"initial_bias_sigma must be below {MAX_GYRO_BIAS:g} rad/s (beyond any gyro's "
+            f"offset), got {self.initial_bias_sigma:g}",
+        )
+        max_sigma = math.sqrt(MAX_ATTITUDE_VAR)
+        _require(
+            self.initial_tilt_sigma < max_sigma,
+            f"initial_tilt_sigma must be below {max_sigma:.4g} rad (2π), "
+            f"got {self.initial_tilt_sigma:g}",
+        )
+        _require(
+            self.gyro_noise_density <= max_sigma,
+            f"gyro_noise_density must be at most {max_sigma:.4g} rad/s/√Hz (a second of it "
+            f"within 2π), got {self.gyro_noise_density:g}",
+        )
+        max_velocity = math.sqrt(MAX_CONSIDERED_VAR)
+        for name in ("velocity_sigma", "velocity_sigma_min", "aided_velocity_sigma"):
+            _require(
+                getattr(self, name) <= max_velocity,
+                f"{name} must be at most {max_velocity:g} m/s, got {getattr(self, name):g}",
+            )
 
     def replace(self, **changes: Any) -> EstimatorConfig:
         """A copy with some parameters changed (the config itself is immutable)."""
@@ -337,8 +402,10 @@ class EstimatorConfig:
         return f"{self.update}/{self.error}/{self.chart}/{self.reset}"
 
     @classmethod
-    def from_mapping(cls, values: dict[str, Any]) -> EstimatorConfig:
-        """Build from a mapping (e.g. a TOML table), rejecting unknown keys by name."""
+    def from_mapping(cls, values: Mapping[str, Any]) -> EstimatorConfig:
+        """Build from a mapping (e.g. a TOML table), rejecting unknown keys by name and
+        values of the wrong type (:func:`check_types`) with a :class:`ConfigError`."""
+        require_table(values, "estimator")
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(values) - known)
         if unknown:
@@ -354,10 +421,34 @@ class EstimatorConfig:
         return cls.from_mapping(read_toml(path).get(table, {}))
 
 
-def check_types(cls: type, values: dict[str, Any], table: str) -> dict[str, Any]:
+def config_or_default(config: EstimatorConfig | None) -> EstimatorConfig:
+    """``config``, or the defaults for None; a :class:`TypeError` for anything else (a
+    dict, a file's path), saying how to make one."""
+    if config is None:
+        return EstimatorConfig()
+    if not isinstance(config, EstimatorConfig):
+        raise TypeError(
+            f"config must be an EstimatorConfig, got {type(config).__name__}: build one with "
+            "EstimatorConfig(...), EstimatorConfig.from_mapping(dict) or "
+            "EstimatorConfig.from_toml(path)"
+        )
+    return config
+
+
+def require_table(values: Any, table: str) -> None:
+    """A :class:`ConfigError` unless ``values`` is a table (a mapping of settings)."""
+    _require(
+        isinstance(values, Mapping),
+        f"[{table}] must be a table of settings, got {type(values).__name__} {values!r}",
+    )
+
+
+def check_types(cls: type, values: Mapping[str, Any], table: str | None) -> dict[str, Any]:
     """``values`` for the dataclass ``cls``, each checked against its field's type (a
-    :class:`ConfigError` names the table and the key); lists become tuples."""
-    hints = typing.get_type_hints(cls)
+    :class:`ConfigError` names the table, None: the constructor's arguments, and the
+    key) and made that type: lists and arrays become tuples, numpy's numbers Python's."""
+    require_table(values, "" if table is None else table)
+    hints = _field_types(cls)
     checked = dict(values)
     for key, value in values.items():
         expected = hints[key]
@@ -365,7 +456,9 @@ def check_types(cls: type, values: dict[str, Any], table: str) -> dict[str, Any]
         if origin is tuple:
             items = typing.get_args(expected)
             kind = items[0]
-            fits = isinstance(value, (list, tuple)) and all(_fits(v, kind) for v in value)
+            fits = isinstance(value, (list, tuple, np.ndarray)) and all(
+                _fits(v, kind) for v in value
+            )
             if fits and items[-1] is not Ellipsis:
                 fits = len(value) == len(items)
             count = "" if items[-1] is Ellipsis else f"{len(items)} "
@@ -376,21 +469,34 @@ def check_types(cls: type, values: dict[str, Any], table: str) -> dict[str, Any]
             kind = str if origin is Literal else expected
             fits = _fits(value, kind)
             wanted = _TYPE_NAMES[kind]
-            if fits and kind is float:
-                checked[key] = float(value)
+            if fits:
+                checked[key] = kind(value)
         if not fits:
-            raise ConfigError(f"[{table}] {key} = {value!r}: expected {wanted}")
+            where = key if table is None else f"[{table}] {key}"
+            raise ConfigError(f"{where} = {value!r}: expected {wanted}")
     return checked
 
 
+@functools.cache
+def _field_types(cls: type) -> dict[str, Any]:
+    """A dataclass's fields and their types (resolved once: get_type_hints takes as long
+    as the rest of a configuration's checks)."""
+    hints = typing.get_type_hints(cls)
+    return {field.name: hints[field.name] for field in dataclasses.fields(cls)}
+
+
 _TYPE_NAMES = {float: "number", int: "whole number", bool: "true or false", str: "string"}
+# A bool is a number to Python, never a setting's number; numpy's own are its numbers
+_BOOLS = (bool, np.bool_)
 
 
 def _fits(value: Any, kind: type) -> bool:
     if kind is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
+        return isinstance(value, numbers.Real) and not isinstance(value, _BOOLS)
     if kind is int:
-        return isinstance(value, int) and not isinstance(value, bool)
+        return isinstance(value, numbers.Integral) and not isinstance(value, _BOOLS)
+    if kind is bool:
+        return isinstance(value, _BOOLS)
     return isinstance(value, kind)
 
 

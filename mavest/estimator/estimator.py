@@ -9,10 +9,12 @@ world frame (left error) or body frame (right error).
 
 from __future__ import annotations
 
+import copy
 import math
+import operator
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -20,7 +22,7 @@ from numpy.typing import ArrayLike
 from mavest import so3
 from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
-from mavest.estimator.config import EstimatorConfig
+from mavest.estimator.config import MAX_ANGULAR_RATE, EstimatorConfig, config_or_default
 from mavest.estimator.heading import turn_heading
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.linalg import copy_into, copy_matrix_into
@@ -137,20 +139,26 @@ class EstimateSeries:
     def empty(cls, n: int) -> EstimateSeries:
         """A series of N estimates yet to be written (e.g. by :meth:`Estimator.update_batch`)."""
         return cls(
-            np.empty(n),
-            np.empty((n, 4)),
-            np.empty((n, 3)),
-            np.empty((n, 6, 6)),
-            np.empty((n, 2)),
-            np.empty(n),
-            np.empty(n, dtype=bool),
-            np.empty(n, dtype=FLAGS_DTYPE),
-            np.empty(n, dtype=ITERATIONS_DTYPE),
-            np.empty(n, dtype=bool),
-            np.empty(n),
-            np.empty(n),
-            np.empty(n, dtype=bool),
+            **{
+                name: np.empty((n, *shape), dtype=dtype)
+                for name, (shape, dtype) in SERIES_FIELDS.items()
+            }
         )
+
+    def check_writable(self, n: int) -> None:
+        """That this series can take N estimates as :meth:`Estimator.update_batch` writes
+        them: each array as :meth:`empty` makes it, (N, …) of its dtype, C-contiguous and
+        writeable (the compiled loop writes them unchecked). Else a TypeError (a type) or
+        ValueError (a shape, a layout) naming the array."""
+        for name, (shape, dtype) in SERIES_FIELDS.items():
+            array = getattr(self, name)
+            if not isinstance(array, np.ndarray) or array.dtype != dtype:
+                kind = array.dtype if isinstance(array, np.ndarray) else type(array).__name__
+                raise TypeError(f"out.{name} must be a numpy array of {dtype}, got {kind}")
+            if array.shape != (n, *shape):
+                raise ValueError(f"out.{name} must have shape {(n, *shape)}, got {array.shape}")
+            if not (array.flags.c_contiguous and array.flags.writeable):
+                raise ValueError(f"out.{name} must be a C-contiguous, writeable array")
 
     def rows(self, start: int, stop: int) -> EstimateSeries:
         """Estimates [start, stop) as views of this series' arrays (writing them writes
@@ -162,7 +170,24 @@ class EstimateSeries:
     def __len__(self) -> int:
         return self.t.shape[0]
 
-    def __getitem__(self, i: int) -> Estimate:
+    @overload
+    def __getitem__(self, i: int) -> Estimate: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> EstimateSeries: ...
+
+    def __getitem__(self, i: int | slice) -> Estimate | EstimateSeries:
+        """Sample ``i``'s :class:`Estimate`; a slice of samples as a series of views of
+        these arrays (as :meth:`rows` gives)."""
+        if isinstance(i, slice):
+            return EstimateSeries(*(getattr(self, name)[i] for name in SERIES_FIELDS))
+        try:
+            i = operator.index(i)
+        except TypeError:
+            raise TypeError(
+                f"an EstimateSeries is indexed by a sample number or a slice, not "
+                f"{type(i).__name__}; its arrays (series.q[mask], ...) take any numpy index"
+            ) from None
         return Estimate.of(
             self.t[i],
             self.q[i],
@@ -188,11 +213,37 @@ class EstimateSeries:
 # The narrowest types that hold every StepFlags value and any iteration count: a
 # sample's estimate is 401 B, of which the covariance is 288.
 FLAGS_DTYPE = np.int32
-ITERATIONS_DTYPE = np.int16
+ITERATIONS_DTYPE = np.int16  # (EstimatorConfig's max_iterations is at most MAX_ITERATIONS)
+
+# Each array of an EstimateSeries: its shape after N, its dtype.
+SERIES_FIELDS: dict[str, tuple[tuple[int, ...], np.dtype]] = {
+    "t": ((), np.dtype(np.float64)),
+    "q": ((4,), np.dtype(np.float64)),
+    "bias": ((3,), np.dtype(np.float64)),
+    "cov": ((N_ERROR, N_ERROR), np.dtype(np.float64)),
+    "innovation": ((2,), np.dtype(np.float64)),
+    "nis": ((), np.dtype(np.float64)),
+    "accel_used": ((), np.dtype(bool)),
+    "flags": ((), np.dtype(FLAGS_DTYPE)),
+    "iterations": ((), np.dtype(ITERATIONS_DTYPE)),
+    "at_rest": ((), np.dtype(bool)),
+    "heading_innovation": ((), np.dtype(np.float64)),
+    "heading_nis": ((), np.dtype(np.float64)),
+    "mag_used": ((), np.dtype(bool)),
+}
+
+
+def _real_array(value: ArrayLike, name: str) -> np.ndarray:
+    """``value`` as a C-contiguous float64 array; a TypeError for complex numbers or text
+    (which numpy would convert, dropping the imaginary part or parsing the text)."""
+    array = np.asarray(value)
+    if array.dtype.kind in "cUS":
+        raise TypeError(f"{name} must be real numbers, got {array.dtype} values")
+    return np.ascontiguousarray(array, dtype=np.float64)
 
 
 def _series3(value: ArrayLike, n: int, name: str) -> np.ndarray:
-    array = np.ascontiguousarray(value, dtype=np.float64)
+    array = _real_array(value, name)
     if array.shape != (n, 3):
         raise ValueError(f"{name} must have shape ({n}, 3), got {array.shape}")
     return array
@@ -208,7 +259,7 @@ def batch_inputs(
     """A batch's inputs as :meth:`Estimator.update_batch` takes them: float64,
     C-contiguous, ``t`` (N,) and the others (N, 3) (None stays None); ValueError
     naming the input whose shape is wrong."""
-    t = np.ascontiguousarray(t, dtype=np.float64)
+    t = _real_array(t, "t")
     if t.ndim != 1:
         raise ValueError(f"t must be one-dimensional, got shape {t.shape}")
     n = t.shape[0]
@@ -219,6 +270,14 @@ def batch_inputs(
         None if mag is None else _series3(mag, n, "mag"),
         None if linear_accel is None else _series3(linear_accel, n, "linear_accel"),
     )
+
+
+def _sample3(value: ArrayLike, name: str) -> tuple[float, float, float]:
+    """One sample's vector as the online step reads it: its three components
+    (``online.components3``), each made a float by ``float()`` (a complex one is a
+    TypeError, not its real part)."""
+    x, y, z = online.components3(value, name)
+    return float(x), float(y), float(z)
 
 
 # Samples a batch-fed estimator's update takes as batches of one before it starts its
@@ -271,7 +330,7 @@ class Estimator:
         sample, for the same estimate at 20 µs a call instead of 1, and the online
         step's compiled code (0.05 s to load) is not loaded unless there are many of
         them (a damaged file, stepped sample by sample)."""
-        self.config = config if config is not None else EstimatorConfig()
+        self.config = config_or_default(config)
         self._coefficients = make_coefficients(self.config)
         self._state = new_state(self._coefficients)
         self._turn = _turn_entry_point(self._state, self._coefficients)
@@ -310,16 +369,26 @@ class Estimator:
             self._online.bind(state)
 
     def __getstate__(self) -> dict[str, Any]:
-        # (for copy.deepcopy) the bound update is not copied but bound again to the copy's
-        # own online step
+        # (for pickle and copy.deepcopy) the compiled code's entry points are not data: the
+        # copy resolves its own, and makes its own online step if this one had made one
         attributes = self.__dict__.copy()
         attributes.pop("update", None)
+        attributes.pop("_turn")
+        attributes["_online"] = attributes["_online"] is not None
         return attributes
 
     def __setstate__(self, attributes: dict[str, Any]) -> None:
+        online_started = attributes.pop("_online")
         self.__dict__.update(attributes)
-        if self._online is not None:
-            self._bind_update()
+        self._turn = _turn_entry_point(self._state, self._coefficients)
+        self._online = None
+        if online_started:
+            self._start_online()
+
+    def __copy__(self) -> Estimator:
+        """An independent estimator (as :func:`copy.deepcopy`): two sharing one filter
+        state would each step it."""
+        return copy.deepcopy(self)
 
     def reset(self) -> None:
         """Forget everything; the next usable sample initialises again."""
@@ -497,13 +566,14 @@ class Estimator:
         mag: ArrayLike | None,
         linear_accel: ArrayLike | None,
     ) -> Estimate:
-        """:meth:`update` as a batch of one sample (``batch_fed``)."""
+        """:meth:`update` as a batch of one sample (``batch_fed``), its inputs taken as the
+        online step takes them (the same values accepted, the same errors)."""
         series = self.update_batch(
-            (t,),
-            (online.vector3(gyro, "gyro"),),
-            (online.vector3(accel, "accel"),),
-            None if mag is None else (online.vector3(mag, "mag"),),
-            None if linear_accel is None else (online.vector3(linear_accel, "linear_accel"),),
+            (float(t),),
+            (_sample3(gyro, "gyro"),),
+            (_sample3(accel, "accel"),),
+            None if mag is None else (_sample3(mag, "mag"),),
+            None if linear_accel is None else (_sample3(linear_accel, "linear_accel"),),
         )
         if series.flags[0] & StepFlags.ACCEL_WRONG_UNIT:
             online.warn_accel_unit(self._state, stacklevel=3)
@@ -537,8 +607,10 @@ class Estimator:
         linear_accel = none if linear_accel is None else linear_accel
         if out is None:
             out = EstimateSeries.empty(n)
-        elif len(out) != n:
-            raise ValueError(f"out must hold {n} estimates, got {len(out)}")
+        elif not isinstance(out, EstimateSeries):
+            raise TypeError(f"out must be an EstimateSeries, got {type(out).__name__}")
+        else:
+            out.check_writable(n)
         out.t[:] = t
         _run_batch(
             self._state,
@@ -574,9 +646,10 @@ def estimate(
 ) -> EstimateSeries:
     """Estimate attitude and gyro bias for a whole recording (see :class:`Estimator`).
 
-    Raises :class:`InputError` when the accelerometer is in another unit than m/s²
-    (its norm over the first samples is g in g, mg or mm/s²): nothing would be
-    estimated, every sample NOT_INITIALISED.
+    Raises :class:`InputError` when nothing would be estimated, every sample
+    NOT_INITIALISED: the accelerometer is in another unit than m/s² (its norm over the
+    first samples is g in g, mg or mm/s²), or no sample could start the estimate (the
+    line says why, e.g. an accelerometer never near g, a gyro never finite).
     """
     estimator = Estimator(config)
     series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
@@ -586,8 +659,32 @@ def estimate(
 
 def refuse_wrong_unit(estimator: Estimator, series: EstimateSeries) -> None:
     """:class:`InputError` if the estimator's samples in ``series`` were flagged with an
-    accelerometer in another unit (``StepFlags.ACCEL_WRONG_UNIT``): it never started on
-    them, and a recording's estimate would be all placeholders."""
+    accelerometer in another unit (``StepFlags.ACCEL_WRONG_UNIT``), or if not one of them
+    was estimated (each NOT_INITIALISED): a recording's estimate would be all
+    placeholders. The message is one line, saying why."""
     problem = estimator.accel_unit_problem
     if problem is not None and np.any(series.flags & StepFlags.ACCEL_WRONG_UNIT):
         raise InputError(problem)
+    if len(series) and np.all(series.flags & StepFlags.NOT_INITIALISED):
+        raise InputError(_why_not_initialised(series.flags, estimator.config))
+
+
+def _why_not_initialised(flags: np.ndarray, config: EstimatorConfig) -> str:
+    """Why not one of these samples started the estimate, from their flags (what
+    ``recursion`` sets on a sample that could not), in one line."""
+    reasons = {
+        StepFlags.ACCEL_INVALID: "accelerometer zero or not finite",
+        StepFlags.ACCEL_REJECTED_NORM: (
+            f"accelerometer norm not within {config.accel_norm_tolerance:g} of "
+            f"g = {config.gravity:g} m/s² (not in m/s², or never at rest)"
+        ),
+        StepFlags.GYRO_INVALID: f"gyro not finite or beyond {MAX_ANGULAR_RATE:g} rad/s",
+        StepFlags.TIME_NOT_INCREASING: "time not finite",
+    }
+    n = len(flags)
+    counts = [
+        f"{what} at {np.count_nonzero(flags & bit)} of {n} samples"
+        for bit, what in reasons.items()
+        if np.any(flags & bit)
+    ]
+    return "nothing estimated, no sample could start the estimate: " + "; ".join(counts)

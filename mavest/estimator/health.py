@@ -11,6 +11,7 @@ import numpy as np
 from mavest import so3
 from mavest._jit import inplace_kernel
 from mavest.estimator.alignment import accel_usable_for_alignment, align
+from mavest.estimator.config import MAX_ATTITUDE_VAR, MAX_CONSIDERED_VAR, MAX_GYRO_BIAS
 from mavest.estimator.frames import (
     attitude_covariance_from_world,
     attitude_covariance_to_world,
@@ -27,10 +28,9 @@ _UNHEALTHY_RESET = StepFlags.UNHEALTHY_RESET
 _DIVERGED = StepFlags.DIVERGED
 _BETWEEN_UPDATES = StepFlags.BETWEEN_UPDATES
 
-# Beyond these the state is a numerical accident, not an estimate.
-_MAX_BIAS = 0.5  # rad/s per axis (29°/s: beyond any MEMS gyro's offset, calibrated or not)
-_MAX_ATTITUDE_VAR = 4.0 * math.pi**2  # rad², any δθ axis (heading is capped at π², below)
-_MAX_CONSIDERED_VAR = 1e6  # (m/s²)², (m/s³)², (m/s)²: ε, ḟ, v
+# Beyond MAX_GYRO_BIAS, MAX_ATTITUDE_VAR (any δθ axis; heading is capped at π², below) and
+# MAX_CONSIDERED_VAR the state is a numerical accident, not an estimate (the configuration
+# keeps its initial state within them).
 # Heading's σ never exceeds 180°: a wrapped normal that wide is as good as uniform,
 # and the linear model of a wider one means nothing (6-D, hours without a compass).
 _MAX_HEADING_VAR = math.pi**2
@@ -63,11 +63,13 @@ def _state_is_plausible(s: StateRecord, c: CoefficientsRecord) -> bool:
     if not abs(q_norm2 - 1.0) < 1e-6:  # also NaN
         return False
     for i in range(3):
-        if not abs(s.b[i]) <= _MAX_BIAS:
+        if not abs(s.b[i]) <= MAX_GYRO_BIAS:
             return False
     n = N_ERROR if s.pending_steps > 0 else c.n_state
     for i in range(n):
-        bound = _MAX_ATTITUDE_VAR if i < 3 else _MAX_BIAS**2 if i < N_ERROR else _MAX_CONSIDERED_VAR
+        bound = MAX_CONSIDERED_VAR
+        if i < N_ERROR:
+            bound = MAX_ATTITUDE_VAR if i < 3 else MAX_GYRO_BIAS**2
         if not 0.0 <= s.P[i, i] <= bound:
             return False
     return True

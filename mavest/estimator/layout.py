@@ -88,7 +88,7 @@ class StepFlags:
     ACCEL_INVALID = 4  # accelerometer not finite or zero: not used
     ACCEL_REJECTED_NORM = 8  # |‖a‖ − g| beyond tolerance: not gravity
     ACCEL_DISTURBED = 16  # innovation beyond the χ² gate: used with its noise inflated to match
-    GYRO_INVALID = 32  # gyroscope not finite: sample skipped
+    GYRO_INVALID = 32  # gyroscope not finite or beyond MAX_ANGULAR_RATE: sample skipped
     # t not after the previous sample's (a duplicate, a step back within
     # mavest.timeline.REORDER_WINDOW) or NaN: skipped
     TIME_NOT_INCREASING = 64

@@ -112,9 +112,18 @@ def step_coefficients(s: StateRecord, c: CoefficientsRecord, dt: float) -> None:
 
 
 @inplace_kernel
+def accel_is_valid(accel: np.ndarray) -> bool:
+    """Whether an accelerometer sample is a measurement: finite, and not zero on all three
+    axes (no real sensor reads exactly nothing: noise alone moves it; all zero is an empty
+    field). StepFlags.ACCEL_INVALID says a sample is not."""
+    return vector_is_finite(accel) and (accel[0] != 0.0 or accel[1] != 0.0 or accel[2] != 0.0)
+
+
+@inplace_kernel
 def take_accel(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray, dt: float) -> bool:
-    """The accelerometer sample into the low-pass (when there is one); False if not finite."""
-    if not vector_is_finite(accel):
+    """The accelerometer sample into the low-pass (when there is one); False if it is not
+    a measurement (:func:`accel_is_valid`)."""
+    if not accel_is_valid(accel):
         s.flags |= _ACCEL_INVALID
         return False
     if vector_is_finite(s.linear_accel):

@@ -37,14 +37,14 @@ from mavest.estimator.alignment import (
     prime_filters,
     realign_when_calm,
 )
-from mavest.estimator.config import STANDARD_GRAVITY
+from mavest.estimator.config import MAX_ANGULAR_RATE, MAX_SPECIFIC_FORCE, STANDARD_GRAVITY
 from mavest.estimator.frames import vector_is_finite
 from mavest.estimator.gravity_update import accel_update, clear_gravity_report
 from mavest.estimator.heading import clear_heading_report, heading_variance, mag_update
 from mavest.estimator.health import check_health
 from mavest.estimator.layout import N_ERROR, CoefficientsRecord, StateRecord, StepFlags
 from mavest.estimator.linalg import copy_into, symmetrise
-from mavest.estimator.lowpass import take_accel
+from mavest.estimator.lowpass import accel_is_valid, take_accel
 from mavest.estimator.propagation import flush_pending, predict, update_due
 from mavest.estimator.rest import detect_rest, restart_rest_mean, zero_rate_update
 from mavest.timeline import confirmations_kernel, far_off_kernel
@@ -52,6 +52,8 @@ from mavest.timeline import confirmations_kernel, far_off_kernel
 _INITIALISED = StepFlags.INITIALISED
 _NOT_INITIALISED = StepFlags.NOT_INITIALISED
 _GYRO_INVALID = StepFlags.GYRO_INVALID
+_ACCEL_INVALID = StepFlags.ACCEL_INVALID
+_ACCEL_REJECTED_NORM = StepFlags.ACCEL_REJECTED_NORM
 _TIME_NOT_INCREASING = StepFlags.TIME_NOT_INCREASING
 _GAP_REALIGNED = StepFlags.GAP_REALIGNED
 _GYRO_CLIPPED = StepFlags.GYRO_CLIPPED
@@ -101,6 +103,9 @@ def step(
     ``s.flags``; the estimate stays finite throughout.
     """
     copy_into(s.linear_accel, linear_accel)
+    if not _within(linear_accel, MAX_SPECIFIC_FORCE):  # (also NaN: unknown)
+        # beyond any vehicle's: a corrupt value, not knowledge of the acceleration
+        s.linear_accel[0] = math.nan
     _step_sample(s, c, t, gyro, accel, mag)
     if s.initialised:
         check_health(s, c, accel)  # (its LDLᵀ reads one triangle)
@@ -109,6 +114,20 @@ def step(
     symmetrise(
         s.P[:N_ERROR, :N_ERROR] if s.flags & _BETWEEN_UPDATES else s.P[: c.n_state, : c.n_state]
     )
+
+
+@inplace_kernel
+def _within(v: np.ndarray, limit: float) -> bool:
+    """Whether every axis is within ±``limit`` (a NaN fails every comparison: it is not)."""
+    return abs(v[0]) <= limit and abs(v[1]) <= limit and abs(v[2]) <= limit
+
+
+@inplace_kernel
+def _gyro_is_valid(gyro: np.ndarray) -> bool:
+    """Whether a gyro sample is a measurement: finite and within any gyro's range
+    (MAX_ANGULAR_RATE; StepFlags.GYRO_INVALID says a sample is not). A rate beyond it is a
+    corrupt value, which integrated would turn the attitude by an arbitrary angle."""
+    return _within(gyro, MAX_ANGULAR_RATE)
 
 
 @inplace_kernel
@@ -130,7 +149,7 @@ def _initialise(
 ) -> None:
     """Not initialised: set the attitude from this sample's accelerometer if it can,
     else say why not."""
-    if math.isfinite(t) and vector_is_finite(gyro) and accel_usable_for_alignment(c, accel):
+    if math.isfinite(t) and _gyro_is_valid(gyro) and accel_usable_for_alignment(c, accel):
         align(s, c, accel, False, False)
         s.initialised = 1
         s.t = t
@@ -140,7 +159,17 @@ def _initialise(
         s.accel_used = 1
         mag_update(s, c, t, mag, 0.0)
     else:
+        # why not: what a sample would be skipped for, or an accelerometer that is not
+        # gravity (in another unit, or in motion)
         s.flags = _NOT_INITIALISED
+        if not math.isfinite(t):
+            s.flags |= _TIME_NOT_INCREASING
+        if not _gyro_is_valid(gyro):
+            s.flags |= _GYRO_INVALID
+        if not accel_is_valid(accel):
+            s.flags |= _ACCEL_INVALID
+        elif not accel_usable_for_alignment(c, accel):
+            s.flags |= _ACCEL_REJECTED_NORM
         if s.samples == 0 and _judge_accel_unit(s, c, t, accel):
             s.flags |= _ACCEL_WRONG_UNIT
 
@@ -221,7 +250,7 @@ def _step_sample(
         _initialise(s, c, t, gyro, accel, mag)
         return
     dt = t - s.t
-    if vector_is_finite(gyro) and far_off_kernel(dt, c.reorder_window, c.max_jump):
+    if _gyro_is_valid(gyro) and far_off_kernel(dt, c.reorder_window, c.max_jump):
         if not _new_timeline_confirmed(s, c, t):
             s.flags = _TIME_OFF_TIMELINE
             clear_gravity_report(s)
@@ -233,7 +262,7 @@ def _step_sample(
             s.flags |= _TIME_RESTARTED
             return
         # forward, and it stayed: a gap (below)
-    if not dt > 0.0 or not vector_is_finite(gyro):  # (also NaN)
+    if not dt > 0.0 or not _gyro_is_valid(gyro):  # (also NaN)
         s.flags = _TIME_NOT_INCREASING if not dt > 0.0 else _GYRO_INVALID
         clear_gravity_report(s)
         clear_heading_report(s)
@@ -269,7 +298,7 @@ def _step_sample(
         # uncertain, turning it into the body would be a guess, and the linear
         # model of that guess's error meaningless. Unaided until heading is known.
         s.linear_accel[0] = math.nan
-    if not s.filters_primed and vector_is_finite(accel):
+    if not s.filters_primed and accel_is_valid(accel):
         prime_filters(s, c, gyro, accel, dt)
         s.filters_primed = 2  # tells accel_update the low-pass already holds this sample
     if s.clip_calm_time >= 0.0:  # nothing corrects an attitude that is not known

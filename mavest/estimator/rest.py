@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 
 from mavest._jit import inplace_kernel
-from mavest.estimator.frames import EPS, apply_correction, vector_is_finite
+from mavest.estimator.frames import EPS, apply_correction
 from mavest.estimator.layout import CoefficientsRecord, StateRecord
 from mavest.estimator.linalg import gain_update, inverse_3x3_into
-from mavest.estimator.lowpass import step_coefficients
+from mavest.estimator.lowpass import accel_is_valid, step_coefficients
 from mavest.estimator.propagation import flush_pending
 
 # χ² (3 dof) at 99.9 %: a "rest" whose rate disagrees this much with the bias is motion.
@@ -26,7 +26,7 @@ def detect_rest(
     The gyro samples since the last update are summed while the criteria hold,
     for the zero-rate update to measure their mean.
     """
-    if not (c.rest_detection and vector_is_finite(accel)):
+    if not (c.rest_detection and accel_is_valid(accel)):
         s.rest_time = 0.0
         restart_rest_mean(s)
         return False

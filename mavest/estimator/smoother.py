@@ -30,7 +30,7 @@ from collections.abc import Iterator
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mavest.estimator.config import MAX_SPECIFIC_FORCE, EstimatorConfig
+from mavest.estimator.config import MAX_SPECIFIC_FORCE, EstimatorConfig, config_or_default
 from mavest.estimator.estimator import (
     EstimateSeries,
     Estimator,
@@ -84,7 +84,7 @@ def smooth(
     backward pass has none to fuse (see :func:`smooth_forward`), the forward estimate
     is returned unchanged.
     """
-    config = config if config is not None else EstimatorConfig()
+    config = config_or_default(config)
     t, gyro, accel, mag, linear_accel = batch_inputs(t, gyro, accel, mag, linear_accel)
     if config.smooth_accel_time > 0.0 and not _any_known(linear_accel):
         forward = _forward_on_averaged_accel(t, gyro, accel, mag, config)
@@ -174,7 +174,7 @@ def smooth_forward(
     not that of its estimate. Gaps and resets need no other splitting: each pass's
     covariance already says what it knows across them.
     """
-    config = config if config is not None else EstimatorConfig()
+    config = config_or_default(config)
     t = np.ascontiguousarray(t, dtype=np.float64)
     n = t.shape[0]
     has_forward = (forward.flags & _NO_ESTIMATE) == 0

@@ -65,7 +65,7 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 
 from mavest.estimator import Estimator
-from mavest.estimator.config import MAX_SPECIFIC_FORCE
+from mavest.estimator.config import MAX_ANGULAR_RATE, MAX_SPECIFIC_FORCE
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.online import EulerComparison
 from mavest.mavlink import wire
@@ -93,7 +93,7 @@ from mavest.service.smoothing import RecordedComparison, RecordedInputs
 log = logging.getLogger("mavest")
 
 # A sample beyond these is a broken sensor or a corrupt packet, never flight.
-MAX_GYRO = 50.0  # rad/s (≈ 2900°/s; MEMS gyros saturate at 2000°/s)
+MAX_GYRO = MAX_ANGULAR_RATE  # rad/s (≈ 2900°/s; the filter skips such a sample too)
 MAX_ACCEL = MAX_SPECIFIC_FORCE  # m/s² (50 g)
 MAX_MAG = 1000.0  # µT (10 gauss; the Earth's field is 25–65 µT)
 # Without a magnetometer for this long, a stream is reported as 6-D (once).
