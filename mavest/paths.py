@@ -122,6 +122,8 @@ def check_outputs(
             raise OutputPathError(f"{name} {path} is a folder: name a file in it")
         folder = os.path.dirname(identity[0])
         if not os.path.isdir(folder) and not writes_in_place(path):
+            if os.path.islink(path):  # (the folder missing is the one the link leads into)
+                raise OutputPathError(f"{name} {path} links to {identity[0]}: no folder {folder}")
             raise OutputPathError(f"{name} {path}: no folder {os.path.dirname(path) or '.'}")
         written[name] = identity
     # only once every output is known good: a probe is a file made, if briefly

@@ -23,15 +23,19 @@ What each sample becomes (MAVLink 2, ardupilotmega dialect, all from one
   (vx, vy, vz in cm/s, rounded, within int16);
 * an airspeed: VFR_HUD (``airspeed``);
 * HEARTBEAT (``type`` the vehicle type, ``autopilot`` ARDUPILOTMEGA or PX4) at the
-  first sample's time and every second after; PARAM_VALUE COMPASS_DEC (rad) at the
-  first sample's time when the log gives the declination.
+  first sample's time and every second after (through a gap of up to a minute, not a
+  longer one); PARAM_VALUE COMPASS_DEC (rad) at the first sample's time when the log
+  gives the declination.
 
 Records are in time order; at equal times in the order of that list, HEARTBEAT and
 PARAM_VALUE first (a SIMSTATE, GPS or airspeed message is taken at the time of the
 IMU sample before it, so it follows the IMU sample of its own time). Sequence numbers
 count the records in that order. The record stamps (a tlog's Unix time, µs) are the
 boot times plus a fixed base, 2000-01-01T00:00:00Z: an onboard log's clock is the
-autopilot's boot clock, and a fixed base makes the same log give the same bytes.
+autopilot's boot clock, and a fixed base makes the same log give the same bytes. Where
+the boot clock went back and stayed (a new timeline), the stamps go on: the new
+timeline's first record a second after the last of the one before, its messages' own
+times as logged, as a ground station records a vehicle that restarted.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from mavest import timeline
 from mavest._jit import inplace_exact_kernel
 from mavest.mavlink import bulk
 from mavest.mavlink.messages import HIGHRES_INERTIAL_BITS, HIGHRES_MAG_BITS, UNIT_TO_SI, mavlink2
@@ -51,6 +56,8 @@ __all__ = ["RECORD_EPOCH_US", "to_tlog_bytes"]
 RECORD_EPOCH_US = 946_684_800 * 10**6
 
 _HEARTBEAT_PERIOD_US = 1_000_000
+_TIMELINE_GAP_US = _HEARTBEAT_PERIOD_US  # between a timeline's last record and the next's first
+_LATEST_OFFSET_US = 2**62
 
 _AUTOPILOTS = {
     "ArduPilot": mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
@@ -84,30 +91,34 @@ _DTYPES = {name: bulk.wire_dtype(message_class) for name, message_class in _CLAS
 def to_tlog_bytes(log: OnboardLog, system: int = 1, component: int = 1) -> bytes:
     """The tlog of ``log``: every sample as a MAVLink 2 record, in time order (see the
     module's docstring for what each becomes). The same log gives the same bytes."""
-    parts: list[tuple[str, np.ndarray, np.ndarray]] = []  # (kind, boot µs, payloads)
+    clock = _Clock(log)
+    parts: list[tuple[str, np.ndarray, np.ndarray]] = []  # (kind, record clock µs, payloads)
     for stream in log.imus:
-        parts.append(("HIGHRES_IMU", stream.t_us, _highres_imu(log, stream)))
+        t = clock.of(stream.t_us, stream.restarts)
+        parts.append(("HIGHRES_IMU", t, _highres_imu(log, stream, t, clock)))
     if log.attitude is not None and len(log.attitude.t_us):
-        parts.append(("ATTITUDE", log.attitude.t_us, _attitude(log.attitude)))
+        parts.append(("ATTITUDE", clock.series(log.attitude), _attitude(log.attitude)))
     if log.truth is not None and len(log.truth.t_us):
-        parts.append(("SIMSTATE", log.truth.t_us, _simstate(log.truth)))
+        parts.append(("SIMSTATE", clock.series(log.truth), _simstate(log.truth)))
     if log.gps_fix is not None and len(log.gps_fix.t_us):
-        parts.append(("GPS_RAW_INT", log.gps_fix.t_us, _gps_raw_int(log.gps_fix)))
+        parts.append(("GPS_RAW_INT", clock.series(log.gps_fix), _gps_raw_int(log.gps_fix)))
     if log.gps_velocity is not None and len(log.gps_velocity.t_us):
         parts.append(
-            ("GLOBAL_POSITION_INT", log.gps_velocity.t_us, _global_position(log.gps_velocity))
+            (
+                "GLOBAL_POSITION_INT",
+                clock.series(log.gps_velocity),
+                _global_position(log.gps_velocity),
+            )
         )
     if log.airspeed is not None and len(log.airspeed.t_us):
-        parts.append(("VFR_HUD", log.airspeed.t_us, _vfr_hud(log.airspeed)))
+        parts.append(("VFR_HUD", clock.series(log.airspeed), _vfr_hud(log.airspeed)))
     sampled = [t for _, t, _ in parts if len(t)]
     if not sampled:
         return b""
-    first = min(int(t[0]) for t in sampled)
-    last = max(int(t[-1]) for t in sampled)
-    beats = np.arange(first, last + 1, _HEARTBEAT_PERIOD_US, dtype=np.int64)
+    beats = _heartbeat_times(np.concatenate(sampled))
     parts.append(("HEARTBEAT", beats, _heartbeats(log, len(beats))))
     if log.declination is not None:
-        parts.append(("PARAM_VALUE", np.array([first], dtype=np.int64), _declination(log)))
+        parts.append(("PARAM_VALUE", beats[:1], _declination(log)))
 
     # One merged order: by time, then by kind, then as each kind came (lexsort is stable).
     times = np.concatenate([np.asarray(t, dtype=np.int64) for _, t, _ in parts])
@@ -161,6 +172,63 @@ def _payloads(kind: str, n: int) -> np.ndarray:
     return np.zeros(n, dtype=_DTYPES[kind])
 
 
+class _Clock:
+    """The record clock of a log's samples: their boot time on the first timeline; on
+    each later one (a clock that went back and stayed) going on from the one before,
+    its first record a second after the previous timeline's last, so that the records
+    of every series fall into one order as a tlog of a restarted vehicle holds them."""
+
+    def __init__(self, log: OnboardLog) -> None:
+        pieces = [(s.t_us, s.restarts) for s in _every_series(log) if len(s.t_us)]
+        count = 1 + max((len(r) for _, r in pieces), default=0)
+        first = [None] * count
+        last = [None] * count
+        for t, restarts in pieces:
+            bounds = np.concatenate(([0], restarts, [len(t)]))
+            for k in range(len(bounds) - 1):
+                a, b = int(t[bounds[k]]), int(t[bounds[k + 1] - 1])
+                first[k] = a if first[k] is None else min(first[k], a)
+                last[k] = b if last[k] is None else max(last[k], b)
+        offsets = [0] * count
+        for k in range(1, count):
+            following = offsets[k - 1] + last[k - 1] - first[k] + _TIMELINE_GAP_US
+            # (bounded, so that a record's Unix time stays within int64 whatever a log holds)
+            offsets[k] = min(following, _LATEST_OFFSET_US)
+        self.offsets = np.array(offsets, dtype=np.int64)
+
+    def of(self, t_us: np.ndarray, restarts: np.ndarray) -> np.ndarray:
+        """The record clock of samples at ``t_us`` with new timelines at ``restarts``."""
+        if not len(restarts):
+            return np.asarray(t_us, dtype=np.int64)
+        timeline = np.searchsorted(restarts, np.arange(len(t_us)), side="right")
+        return np.asarray(t_us, dtype=np.int64) + self.offsets[timeline]
+
+    def series(self, series: Series) -> np.ndarray:
+        return self.of(series.t_us, series.restarts)
+
+
+def _every_series(log: OnboardLog) -> list[Any]:
+    found: list[Any] = list(log.imus) + list(log.mag.values())
+    for series in (log.attitude, log.truth, log.gps_fix, log.gps_velocity, log.airspeed):
+        if series is not None:
+            found.append(series)
+    return found
+
+
+def _heartbeat_times(clock: np.ndarray) -> np.ndarray:
+    """A HEARTBEAT at the first sample's time and every second after, through any gap a
+    stream has (:data:`mavest.timeline.MAX_JUMP`) but not through a longer one: so the
+    records stay bounded by the samples, whatever times a log gives."""
+    first = int(clock.min())
+    seconds = np.unique((clock - first) // _HEARTBEAT_PERIOD_US)
+    span = int(timeline.MAX_JUMP * 1e6) // _HEARTBEAT_PERIOD_US
+    following = np.diff(seconds, append=seconds[-1] + 1)
+    each = np.where(following <= span, following, 1)
+    starts = np.repeat(seconds, each)
+    within = np.arange(len(starts)) - np.repeat(np.cumsum(each) - each, each)
+    return first + (starts + within) * _HEARTBEAT_PERIOD_US
+
+
 def _latest_at_or_before(t_samples: np.ndarray, t: np.ndarray) -> np.ndarray:
     """For each time of ``t``, the index of the last of ``t_samples`` at or before it
     (−1: none yet)."""
@@ -173,7 +241,8 @@ def _mag_for(log: OnboardLog, instance: int) -> Series | None:
     return log.mag[min(log.mag)] if log.mag else None
 
 
-def _highres_imu(log: OnboardLog, stream: Any) -> np.ndarray:
+def _highres_imu(log: OnboardLog, stream: Any, t: np.ndarray, clock: _Clock) -> np.ndarray:
+    """``t``: the samples' record clock, on which each is paired with a field sample."""
     n = len(stream.t_us)
     p = _payloads("HIGHRES_IMU", n)
     p["time_usec"] = stream.t_us
@@ -184,7 +253,7 @@ def _highres_imu(log: OnboardLog, stream: Any) -> np.ndarray:
     mag = _mag_for(log, stream.instance)
     field = np.full((n, 3), np.nan)
     if mag is not None and len(mag.t_us):
-        latest = _latest_at_or_before(mag.t_us, stream.t_us)
+        latest = _latest_at_or_before(clock.series(mag), t)
         known = latest >= 0
         field[known] = mag.values[latest[known]] * _GAUSS_PER_MICROTESLA
         # fresh: the first IMU sample that sees this field sample

@@ -35,11 +35,12 @@ import numpy as np
 
 from mavest._jit import inplace_kernel
 from mavest.mavlink.messages import mavlink2
-from mavest.onboard.errors import OnboardLogError
+from mavest.onboard.errors import FieldError, OnboardLogError
 from mavest.onboard.model import ImuStream, LogDamage, OnboardLog, Series
-from mavest.onboard.series import Timeline
+from mavest.onboard.series import Collector, boot_times
 
 __all__ = [
+    "ColumnError",
     "DataflashFormat",
     "DataflashRecords",
     "boot_time_us",
@@ -229,6 +230,11 @@ class DataflashFormat:
         return DataflashFormat(int(record["Type"]), length, name, fmt, columns, dtype)
 
 
+class ColumnError(FieldError):
+    """A column a message type lacks, or holds as something other than asked (a number,
+    or text): a damaged or odd FMT record."""
+
+
 @dataclass(frozen=True)
 class FieldUnit:
     """A column's unit and multiplier from the log's FMTU, UNIT and MULT records.
@@ -304,7 +310,10 @@ class DataflashRecords:
         return self._tables[name]
 
     def column(self, name: str, column: str, rows: np.ndarray | None = None) -> np.ndarray:
-        """One numeric column as float64, its format's multiplier applied (as DFReader)."""
+        """One numeric column as float64, its format's multiplier applied (as DFReader).
+
+        ColumnError if the message type has no such column or holds it as text."""
+        self._check(name, column, numeric=True)
         values = self.table(name)[column]
         if rows is not None:
             values = values[rows]
@@ -313,9 +322,28 @@ class DataflashRecords:
             values = values.astype(np.float64)
         return values / divisor if divisor is not None else values
 
+    def stored(self, name: str, column: str) -> np.ndarray:
+        """One numeric column as stored, no multiplier applied (a 64-bit integer time
+        exact, not through float64). ColumnError as :meth:`column`."""
+        self._check(name, column, numeric=True)
+        return self.table(name)[column]
+
     def strings(self, name: str, column: str) -> list[str]:
-        """One string column, each value up to its first NUL."""
+        """One string column, each value up to its first NUL. ColumnError if the message
+        type has no such column or holds it as something other than text."""
+        self._check(name, column, numeric=False)
         return [_text(bytes(v)) for v in self.table(name)[column]]
+
+    def _check(self, name: str, column: str, numeric: bool) -> None:
+        """The one rule for a column asked of a message type: it must be there, and a
+        number (one value, not text nor an array) or text as asked."""
+        if column not in self.columns(name):
+            raise ColumnError(f"{name} has no column {column}")
+        text = self.format_char(name, column) in _STRING_FORMATS
+        if numeric and (text or self.format_char(name, column) == "a"):
+            raise ColumnError(f"{name}.{column} is not a number")
+        if not numeric and not text:
+            raise ColumnError(f"{name}.{column} is not text")
 
     def format_char(self, name: str, column: str) -> str:
         definition = self.formats[name]
@@ -334,21 +362,23 @@ class DataflashRecords:
             labels = {
                 chr(int(i) & 0xFF): label
                 for i, label in zip(
-                    self.table("UNIT")["Id"], self.strings("UNIT", "Label"), strict=True
+                    self.column("UNIT", "Id"), self.strings("UNIT", "Label"), strict=True
                 )
+                if math.isfinite(i)
             }
         multipliers: dict[str, float] = {}
         if self.has("MULT"):
             multipliers = {
                 chr(int(i) & 0xFF): float(m)
-                for i, m in zip(self.table("MULT")["Id"], self.table("MULT")["Mult"], strict=True)
+                for i, m in zip(self.column("MULT", "Id"), self.column("MULT", "Mult"), strict=True)
+                if math.isfinite(i)
             }
         by_type = {d.type: d for d in self.formats.values()}
         result: dict[str, dict[str, FieldUnit]] = {}
-        fmtu = self.table("FMTU")
+        kinds = self.column("FMTU", "FmtType")
         unit_ids, mult_ids = self.strings("FMTU", "UnitIds"), self.strings("FMTU", "MultIds")
-        for kind, units, mults in zip(fmtu["FmtType"], unit_ids, mult_ids, strict=True):
-            definition = by_type.get(int(kind))
+        for kind, units, mults in zip(kinds, unit_ids, mult_ids, strict=True):
+            definition = by_type.get(int(kind)) if math.isfinite(kind) else None
             if definition is None:
                 continue
             per_column = {}
@@ -429,7 +459,7 @@ _AIRSPEED = _Quantity("airspeed", _SPEED, "m/s")
 _ATTITUDE = _Quantity("attitude", _ANGLE, "deg")
 
 
-class _UnitError(Exception):
+class _UnitError(ColumnError):
     """A column whose unit the log gives as something the quantity cannot be."""
 
 
@@ -498,60 +528,97 @@ _COPTER_FRAMES = {
 
 def boot_time_us(records: DataflashRecords, name: str) -> np.ndarray:
     """Record times in µs since boot: ``TimeUS``, or ``TimeMS`` (ms) in older firmware,
-    where a GPS message's ``TimeMS`` is the GPS week's time and ``T`` the boot time."""
+    where a GPS message's ``TimeMS`` is the GPS week's time and ``T`` the boot time.
+    A value that is no boot time is :data:`~mavest.onboard.series.NO_TIME`.
+
+    ColumnError if the message type has none of them, or not as a number."""
     columns = records.columns(name)
-    table = records.table(name)
     if "TimeUS" in columns:
-        return table["TimeUS"].astype(np.int64)
+        return boot_times(_exact(records, name, "TimeUS"))
     if name.startswith("GPS") and "T" in columns:
-        return table["T"].astype(np.int64) * 1000
+        return boot_times(_exact(records, name, "T"), 1000)
     if "TimeMS" in columns:
-        return table["TimeMS"].astype(np.int64) * 1000
-    raise OnboardLogError(f"{name} records have neither TimeUS nor TimeMS")
+        return boot_times(_exact(records, name, "TimeMS"), 1000)
+    raise ColumnError(f"{name} has neither TimeUS nor TimeMS")
+
+
+def _exact(records: DataflashRecords, name: str, column: str) -> np.ndarray:
+    """A numeric column as stored: a 64-bit integer time, exact (not through float64)."""
+    if records.format_char(name, column) in _FORMAT_DIVISOR:
+        return records.column(name, column)
+    return records.stored(name, column)
+
+
+# The instances a MAVLink message can carry (HIGHRES_IMU's id, a uint8).
+_LAST_INSTANCE = 255
 
 
 def instances(
-    records: DataflashRecords, names: tuple[str, ...]
+    records: DataflashRecords, names: tuple[str, ...], notes: list[str] | None = None
 ) -> list[tuple[str, int, np.ndarray]]:
     """(message name, instance, rows) of a sensor logged per message (IMU, IMU2…) or in
-    one message with an instance column ``I``."""
-    found = []
+    one message with an instance column ``I``.
+
+    Left out, each with a line in ``notes``: records whose instance is not one of
+    0…255, a message type whose ``I`` is not a number, and an instance that another
+    of ``names`` already gives (two sensors' samples are never merged into one stream).
+    """
+    notes = notes if notes is not None else []
+    found: list[tuple[str, int, np.ndarray]] = []
     for number, name in enumerate(names):
         if not records.has(name):
             continue
-        if "I" in records.columns(name):
-            instance = records.table(name)["I"].astype(np.int64)
-            for value in np.unique(instance):
-                found.append((name, int(value), np.flatnonzero(instance == value)))
+        if "I" not in records.columns(name):
+            given = [(number, np.arange(records.count(name)))]
         else:
-            found.append((name, number, np.arange(records.count(name))))
+            try:
+                instance = records.column(name, "I")
+            except ColumnError as error:
+                notes.append(f"{error}: left out")
+                continue
+            possible = np.isin(instance, np.arange(_LAST_INSTANCE + 1))
+            if not np.all(possible):
+                notes.append(
+                    f"{name}: {int(np.count_nonzero(~possible))} records with an instance I "
+                    f"outside 0…{_LAST_INSTANCE} left out"
+                )
+            given = [
+                (int(value), np.flatnonzero(instance == value))
+                for value in np.unique(instance[possible])
+            ]
+        for value, rows in given:
+            clash = next((other for other, taken, _ in found if taken == value), None)
+            if clash is not None:
+                notes.append(
+                    f"{name} left out as instance {value}: {clash}'s instance {value} "
+                    "is another sensor"
+                )
+                continue
+            found.append((name, value, rows))
     return found
 
 
-class _Builder:
-    """Collects the series of one log, counting the samples dropped for time order."""
+class _Builder(Collector):
+    """Collects the series of one log and its notes, with its records and their units."""
 
     def __init__(self, records: DataflashRecords) -> None:
+        super().__init__(records.notes)
         self.records = records
-        self.units = records.units()
-        self.timeline = Timeline()
-        self.notes: list[str] = list(records.notes)
-
-    def series(self, t_us: np.ndarray, values: np.ndarray) -> Series:
-        return self.timeline.series(t_us, values)
+        units = self.attempt(records.units)
+        self.units = units if units is not None else {}
 
     def quantity(
         self, name: str, columns: tuple[str, ...], quantity: _Quantity, rows: np.ndarray
     ) -> np.ndarray | None:
-        try:
-            return _si(self.records, self.units, name, columns, quantity, rows)
-        except _UnitError as error:
-            self.notes.append(f"{error}: left out")
-            return None
+        """One quantity of some of a message type's records, or None with a note."""
+        return self.attempt(
+            _si, self.records, self.units, name, columns, quantity, rows, part=quantity.what
+        )
 
 
 def logged_parameters(records: DataflashRecords) -> dict[str, float]:
-    """The last value logged for each parameter."""
+    """The last value logged for each parameter. ColumnError if PARM's Name is not text
+    or its Value not a number."""
     if not records.has("PARM"):
         return {}
     values = records.column("PARM", "Value")
@@ -603,34 +670,34 @@ def load_dataflash(path: Path | str) -> OnboardLog:
         build.notes.append("no FMTU records: ArduPilot's fixed units assumed")
 
     imus = []
-    for name, instance, rows in instances(records, _IMU_NAMES):
-        gyro = build.quantity(name, ("GyrX", "GyrY", "GyrZ"), _GYRO, rows)
-        accel = build.quantity(name, ("AccX", "AccY", "AccZ"), _ACCEL, rows)
-        if gyro is None or accel is None:
-            continue
-        both = build.series(boot_time_us(records, name)[rows], np.hstack((gyro, accel)))
-        imus.append(ImuStream(instance, both.t_us, both.values[:, :3], both.values[:, 3:]))
-        build.notes.append(f"IMU instance {instance} ({name}): {len(both.t_us)} samples")
+    before = len(build.notes)
+    for name, instance, rows in instances(records, _IMU_NAMES, build.notes):
+        stream = build.attempt(_imu, build, name, instance, rows)
+        if stream is not None:
+            imus.append(stream)
+            build.notes.append(f"IMU instance {instance} ({name}): {len(stream.t_us)} samples")
     if not imus:
-        raise OnboardLogError(f"{path.name}: no IMU samples in this DataFlash log")
+        why = "; ".join(build.notes[before:])
+        raise OnboardLogError(
+            f"{path.name}: no IMU samples in this DataFlash log" + (f" ({why})" if why else "")
+        )
 
     mag = {}
-    for name, instance, rows in instances(records, _MAG_NAMES):
-        field_ut = build.quantity(name, ("MagX", "MagY", "MagZ"), _MAG, rows)
+    for name, instance, rows in instances(records, _MAG_NAMES, build.notes):
+        field_ut = build.attempt(_sensor, build, name, ("MagX", "MagY", "MagZ"), _MAG, rows)
         if field_ut is not None:
-            mag[instance] = build.series(boot_time_us(records, name)[rows], field_ut)
+            mag[instance] = field_ut
 
-    parameters = logged_parameters(records)
-    attitude = _attitude(build, "ATT", parameters)
-    truth = _attitude(build, "SIM", {}) if records.has("SIM") else None
+    parameters = build.attempt(logged_parameters, records) or {}
+    attitude = build.attempt(_attitude, build, "ATT", parameters)
+    truth = build.attempt(_attitude, build, "SIM", {}) if records.has("SIM") else None
     gps_fix, gps_velocity = _gps(build)
     airspeed = None
-    for name, instance, rows in instances(records, _AIRSPEED_NAMES):
-        speed = build.quantity(name, ("Airspeed",), _AIRSPEED, rows)
-        if instance == 0 and speed is not None:
-            airspeed = build.series(boot_time_us(records, name)[rows], speed)
+    for name, instance, rows in instances(records, _AIRSPEED_NAMES, build.notes):
+        if instance == 0:
+            airspeed = build.attempt(_sensor, build, name, ("Airspeed",), _AIRSPEED, rows)
 
-    vehicle, firmware = _vehicle_type(records)
+    vehicle, firmware = build.attempt(_vehicle_type, records) or (mavlink2.MAV_TYPE_GENERIC, None)
     build.notes.append(
         f"vehicle type {vehicle} from {firmware!r}"
         if firmware
@@ -646,9 +713,8 @@ def load_dataflash(path: Path | str) -> OnboardLog:
         records.damage.bad_records + build.timeline.unreadable,
         records.damage.skipped_bytes,
         records.damage.truncated_bytes,
-        build.timeline.dropped,
+        build.timeline.dropped + build.timeline.off_timeline,
     )
-    build.notes += build.timeline.notes()
     return OnboardLog(
         format="dataflash",
         autopilot="ArduPilot",
@@ -662,8 +728,23 @@ def load_dataflash(path: Path | str) -> OnboardLog:
         airspeed=airspeed,
         declination=declination,
         damage=damage,
-        notes=tuple(build.notes),
+        notes=build.final_notes(),
     )
+
+
+def _imu(build: _Builder, name: str, instance: int, rows: np.ndarray) -> ImuStream:
+    gyro = _si(build.records, build.units, name, ("GyrX", "GyrY", "GyrZ"), _GYRO, rows)
+    accel = _si(build.records, build.units, name, ("AccX", "AccY", "AccZ"), _ACCEL, rows)
+    both = build.series(boot_time_us(build.records, name)[rows], np.hstack((gyro, accel)))
+    return ImuStream(instance, both.t_us, both.values[:, :3], both.values[:, 3:], both.restarts)
+
+
+def _sensor(
+    build: _Builder, name: str, columns: tuple[str, ...], quantity: _Quantity, rows: np.ndarray
+) -> Series:
+    """The series of one sensor's instance: ``columns`` of ``rows`` of ``name``."""
+    values = _si(build.records, build.units, name, columns, quantity, rows)
+    return build.series(boot_time_us(build.records, name)[rows], values)
 
 
 def _attitude(build: _Builder, name: str, parameters: dict[str, float]) -> Series | None:
@@ -672,9 +753,8 @@ def _attitude(build: _Builder, name: str, parameters: dict[str, float]) -> Serie
     if not records.has(name):
         return None
     rows = np.arange(records.count(name))
-    euler = build.quantity(name, ("Roll", "Pitch", "Yaw"), _ATTITUDE, rows)
-    if euler is None:
-        return None
+    t_us = boot_time_us(records, name)
+    euler = _si(records, build.units, name, ("Roll", "Pitch", "Yaw"), _ATTITUDE, rows)
     trim = np.array([parameters.get("AHRS_TRIM_X", 0.0), parameters.get("AHRS_TRIM_Y", 0.0)])
     if np.any(trim):
         # ArduPilot logs euler − trim; adding it back gives the IMU frame's attitude.
@@ -686,7 +766,7 @@ def _attitude(build: _Builder, name: str, parameters: dict[str, float]) -> Serie
             f"added to {name}'s roll, pitch"
         )
     euler[:, 2] = _wrap(euler[:, 2])
-    return build.series(boot_time_us(records, name), euler)
+    return build.series(t_us, euler)
 
 
 def _gps(build: _Builder) -> tuple[Series | None, Series | None]:
@@ -697,9 +777,12 @@ def _gps(build: _Builder) -> tuple[Series | None, Series | None]:
     """
     records = build.records
     chosen: tuple[Series, Series | None] | None = None
-    for name, instance, rows in instances(records, _GPS_NAMES):
-        status = records.table(name)["Status"][rows].astype(np.float64)
-        t_us = boot_time_us(records, name)[rows]
+    for name, instance, rows in instances(records, _GPS_NAMES, build.notes):
+        status = build.attempt(records.column, name, "Status", rows)
+        times = build.attempt(boot_time_us, records, name)
+        if status is None or times is None:
+            continue
+        t_us = times[rows]
         fix = Series(t_us, status[:, None])
         fixed = rows[status >= 3]
         velocity = None
@@ -714,7 +797,7 @@ def _gps(build: _Builder) -> tuple[Series | None, Series | None]:
                         speed[:, 1],
                     )
                 )
-                velocity = build.series(boot_time_us(records, name)[fixed], ned)
+                velocity = build.series(times[fixed], ned)
         if chosen is None or (chosen[1] is None and velocity is not None):
             chosen = (fix, velocity)
             build.notes.append(f"GPS instance {instance} ({name}) for fix and velocity")

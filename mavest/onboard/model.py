@@ -6,18 +6,25 @@ FRD / NED frames, so a consumer never needs to know which autopilot wrote the fi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+
+def _none() -> np.ndarray:
+    return np.zeros(0, dtype=np.int64)
 
 
 @dataclass(frozen=True)
 class Series:
     """Samples of one quantity: t_us (N,) int64 µs since the autopilot's boot, strictly
-    increasing after loading (duplicates/backsteps dropped and counted); values (N, k) float64."""
+    increasing after loading within each timeline (duplicates/backsteps dropped and
+    counted); values (N, k) float64; restarts: the indices where a new timeline starts
+    (a clock that went back and stayed), in order, none for most logs."""
 
     t_us: np.ndarray
     values: np.ndarray
+    restarts: np.ndarray = field(default_factory=_none)
 
 
 @dataclass(frozen=True)
@@ -28,6 +35,7 @@ class ImuStream:
     t_us: np.ndarray  # (N,) int64 µs since boot
     gyro: np.ndarray  # (N, 3) rad/s, body FRD (as logged: board rotation applied)
     accel: np.ndarray  # (N, 3) m/s², specific force, body FRD (≈ (0,0,-g) level at rest)
+    restarts: np.ndarray = field(default_factory=_none)  # as Series.restarts
 
 
 @dataclass(frozen=True)

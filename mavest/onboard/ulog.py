@@ -33,9 +33,9 @@ import numpy as np
 
 from mavest.mavlink.bulk import euler_rows
 from mavest.mavlink.messages import mavlink2
-from mavest.onboard.errors import OnboardLogError
+from mavest.onboard.errors import FieldError, OnboardLogError
 from mavest.onboard.model import ImuStream, LogDamage, OnboardLog, Series
-from mavest.onboard.series import Timeline
+from mavest.onboard.series import Collector, boot_times
 
 __all__ = ["load_ulog"]
 
@@ -57,28 +57,41 @@ _RELATIVE_TIMESTAMP_INVALID = 2**31 - 1
 _GAUSS_TO_MICROTESLA = 100.0
 
 
-def _vector(data: dict[str, np.ndarray], field: str, count: int = 3) -> np.ndarray:
+def _numbers(data: dict[str, np.ndarray], topic: str, field: str) -> np.ndarray:
+    """One field as stored; FieldError if the topic's format lacks it or it is not a number."""
+    values = data.get(field)
+    if values is None:
+        raise FieldError(f"{topic} has no field {field}")
+    if values.dtype.kind not in "biuf":
+        raise FieldError(f"{topic}.{field} is not a number")
+    return values
+
+
+def _scalar(data: dict[str, np.ndarray], topic: str, field: str) -> np.ndarray:
+    """(N,) float64 of one field (see :func:`_numbers`)."""
+    return _numbers(data, topic, field).astype(np.float64)
+
+
+def _vector(data: dict[str, np.ndarray], topic: str, field: str, count: int = 3) -> np.ndarray:
     """(N, count) float64 from an array field stored as ``field[0]``, ``field[1]``…"""
-    return np.column_stack([data[f"{field}[{i}]"] for i in range(count)]).astype(np.float64)
+    return np.column_stack([_scalar(data, topic, f"{field}[{i}]") for i in range(count)])
+
+
+def _time(data: dict[str, np.ndarray]) -> np.ndarray:
+    """µs since boot of each message (``timestamp``: every topic read has one)."""
+    return boot_times(data["timestamp"])
 
 
 def _sample_time(data: dict[str, np.ndarray]) -> np.ndarray:
     """µs since boot of each message's sample: ``timestamp_sample`` where all are set."""
     sample = data.get("timestamp_sample")
-    if sample is not None and len(sample) and np.all(sample > 0):
-        return sample.astype(np.int64)
-    return data["timestamp"].astype(np.int64)
+    if sample is not None and len(sample) and sample.dtype.kind in "iu" and np.all(sample > 0):
+        return boot_times(sample)
+    return _time(data)
 
 
-class _Builder:
+class _Builder(Collector):
     """Collects the series of one log and what it says about them."""
-
-    def __init__(self) -> None:
-        self.timeline = Timeline()
-        self.notes: list[str] = []
-
-    def series(self, t_us: np.ndarray, values: np.ndarray) -> Series:
-        return self.timeline.series(t_us, values)
 
 
 def _read(path: Path) -> tuple[Any, str]:
@@ -106,12 +119,18 @@ def _topics(ulog: Any) -> dict[str, dict[int, dict[str, np.ndarray]]]:
 
 
 def _imu(build: _Builder, sensors: dict[str, np.ndarray]) -> ImuStream | None:
-    t_us = sensors["timestamp"].astype(np.int64)
+    """FieldError if sensor_combined lacks the gyro or the accelerometer."""
+    t_us = _time(sensors)
     relative = sensors.get("accelerometer_timestamp_relative", np.zeros_like(t_us))
     valid = relative.astype(np.int64) != _RELATIVE_TIMESTAMP_INVALID
     if not np.any(valid):
         return None
-    both = np.hstack((_vector(sensors, "gyro_rad"), _vector(sensors, "accelerometer_m_s2")))
+    both = np.hstack(
+        (
+            _vector(sensors, "sensor_combined", "gyro_rad"),
+            _vector(sensors, "sensor_combined", "accelerometer_m_s2"),
+        )
+    )
     imu = build.series(t_us[valid], both[valid])
     build.notes.append(
         f"IMU instance 0 (sensor_combined): {len(imu.t_us)} samples, accelerometer paired "
@@ -119,38 +138,57 @@ def _imu(build: _Builder, sensors: dict[str, np.ndarray]) -> ImuStream | None:
     )
     if not np.all(valid):
         build.notes.append(f"{int(np.sum(~valid))} sensor_combined messages without accelerometer")
-    return ImuStream(0, imu.t_us, imu.values[:, :3], imu.values[:, 3:])
+    return ImuStream(0, imu.t_us, imu.values[:, :3], imu.values[:, 3:], imu.restarts)
 
 
 def _magnetometers(build: _Builder, topics: dict[str, Any]) -> dict[int, Series]:
-    if "vehicle_magnetometer" in topics:
-        build.notes.append("magnetometer: vehicle_magnetometer (calibrated)")
-        return {
-            instance: build.series(
-                _sample_time(data), _vector(data, "magnetometer_ga") * _GAUSS_TO_MICROTESLA
-            )
-            for instance, data in sorted(topics["vehicle_magnetometer"].items())
-        }
-    sensors = topics.get("sensor_combined", {}).get(0, {})
-    if "magnetometer_ga[0]" in sensors:
-        relative = sensors["magnetometer_timestamp_relative"].astype(np.int64)
-        valid = relative != _RELATIVE_TIMESTAMP_INVALID
-        t_us = sensors["timestamp"].astype(np.int64)[valid] + relative[valid]
-        field = _vector(sensors, "magnetometer_ga")[valid] * _GAUSS_TO_MICROTESLA
-        # sensor_combined repeats the last magnetometer sample in every message
-        new = np.concatenate(([True], np.diff(t_us) != 0))
-        build.notes.append("magnetometer: sensor_combined.magnetometer_ga")
-        return {0: build.series(t_us[new], field[new])} if len(t_us) else {}
-    if "sensor_mag" in topics:
-        build.notes.append("magnetometer: sensor_mag (uncalibrated: no vehicle_magnetometer)")
-        return {
-            instance: build.series(
-                _sample_time(data),
-                np.column_stack([data[a] for a in "xyz"]).astype(np.float64) * _GAUSS_TO_MICROTESLA,
-            )
-            for instance, data in sorted(topics["sensor_mag"].items())
-        }
+    """The first source of vehicle_magnetometer, sensor_combined, sensor_mag that gives
+    a field (one whose format lacks it is left out, with a note, for the next)."""
+    for read in (_vehicle_magnetometer, _combined_magnetometer, _sensor_mag):
+        found = build.attempt(read, build, topics)
+        if found is not None and found:
+            return found
     return {}
+
+
+def _vehicle_magnetometer(build: _Builder, topics: dict[str, Any]) -> dict[int, Series]:
+    if "vehicle_magnetometer" not in topics:
+        return {}
+    field = {
+        instance: (_sample_time(data), _vector(data, "vehicle_magnetometer", "magnetometer_ga"))
+        for instance, data in sorted(topics["vehicle_magnetometer"].items())
+    }
+    build.notes.append("magnetometer: vehicle_magnetometer (calibrated)")
+    return {k: build.series(t, gauss * _GAUSS_TO_MICROTESLA) for k, (t, gauss) in field.items()}
+
+
+def _combined_magnetometer(build: _Builder, topics: dict[str, Any]) -> dict[int, Series]:
+    sensors = topics.get("sensor_combined", {}).get(0, {})
+    if "magnetometer_ga[0]" not in sensors:
+        return {}
+    name = "sensor_combined"
+    relative = _numbers(sensors, name, "magnetometer_timestamp_relative").astype(np.int64)
+    valid = relative != _RELATIVE_TIMESTAMP_INVALID
+    t_us = _time(sensors)[valid] + relative[valid]
+    field = _vector(sensors, name, "magnetometer_ga")[valid] * _GAUSS_TO_MICROTESLA
+    # sensor_combined repeats the last magnetometer sample in every message
+    new = np.concatenate(([True], np.diff(t_us) != 0))
+    build.notes.append("magnetometer: sensor_combined.magnetometer_ga")
+    return {0: build.series(t_us[new], field[new])} if len(t_us) else {}
+
+
+def _sensor_mag(build: _Builder, topics: dict[str, Any]) -> dict[int, Series]:
+    if "sensor_mag" not in topics:
+        return {}
+    field = {
+        instance: (
+            _sample_time(data),
+            np.column_stack([_scalar(data, "sensor_mag", a) for a in "xyz"]),
+        )
+        for instance, data in sorted(topics["sensor_mag"].items())
+    }
+    build.notes.append("magnetometer: sensor_mag (uncalibrated: no vehicle_magnetometer)")
+    return {k: build.series(t, gauss * _GAUSS_TO_MICROTESLA) for k, (t, gauss) in field.items()}
 
 
 def _gps(build: _Builder, topics: dict[str, Any]) -> tuple[Series | None, Series | None]:
@@ -158,17 +196,27 @@ def _gps(build: _Builder, topics: dict[str, Any]) -> tuple[Series | None, Series
     if name is None:
         return None, None
     data = topics[name][min(topics[name])]
-    t_us = data["timestamp"].astype(np.int64)
-    fix_type = data["fix_type"].astype(np.float64)
+    t_us = _time(data)
+    fix_type = build.attempt(_scalar, data, name, "fix_type")
+    if fix_type is None:
+        return None, None
     three_d = fix_type >= 3
-    if "vel_ned_valid" in data:
-        three_d &= data["vel_ned_valid"].astype(bool)
+    valid = (
+        build.attempt(_numbers, data, name, "vel_ned_valid") if "vel_ned_valid" in data else None
+    )
+    if valid is not None:
+        three_d &= valid.astype(bool)
     velocity = None
     if np.any(three_d):
-        ned = np.column_stack([data[f"vel_{a}_m_s"] for a in "ned"]).astype(np.float64)
-        velocity = build.series(t_us[three_d], ned[three_d])
+        ned = build.attempt(_ned, data, name, part="GPS velocity")
+        if ned is not None:
+            velocity = build.series(t_us[three_d], ned[three_d])
     build.notes.append(f"GPS: {name}")
     return build.series(t_us, fix_type[:, None]), velocity
+
+
+def _ned(data: dict[str, np.ndarray], name: str) -> np.ndarray:
+    return np.column_stack([_scalar(data, name, f"vel_{a}_m_s") for a in "ned"])
 
 
 def _airspeed(build: _Builder, topics: dict[str, Any]) -> Series | None:
@@ -181,16 +229,20 @@ def _airspeed(build: _Builder, topics: dict[str, Any]) -> Series | None:
         return None
     _, name = max(candidates)
     data = topics[name][0]
+    speed = build.attempt(_scalar, data, name, "true_airspeed_m_s")
+    if speed is None:
+        return None
     build.notes.append(f"airspeed: {name}.true_airspeed_m_s")
-    speed = data["true_airspeed_m_s"].astype(np.float64)[:, None]
-    return build.series(data["timestamp"].astype(np.int64), speed)
+    return build.series(_time(data), speed[:, None])
 
 
 def _attitude(build: _Builder, topics: dict[str, Any], name: str) -> Series | None:
     if 0 not in topics.get(name, {}):
         return None
     data = topics[name][0]
-    q = _vector(data, "q", 4)
+    q = build.attempt(_vector, data, name, "q", 4)
+    if q is None:
+        return None
     norm = np.linalg.norm(q, axis=1)
     usable = norm > 0.5  # (an all-zero quaternion: no estimate yet)
     q = q[usable] / norm[usable, None]  # logged as float32
@@ -212,7 +264,10 @@ def load_ulog(path: Path | str) -> OnboardLog:
             "pyulog found corrupt data" + (f": {printed.splitlines()[0]}" if printed else "")
         )
     sensors = topics.get("sensor_combined", {}).get(0)
-    imu = _imu(build, sensors) if sensors is not None else None
+    try:
+        imu = _imu(build, sensors) if sensors is not None else None
+    except FieldError as error:
+        raise OnboardLogError(f"{path.name}: no IMU samples in this ULog ({error})") from error
     if imu is None:
         raise OnboardLogError(f"{path.name}: no sensor_combined (IMU) samples in this ULog")
 
@@ -225,13 +280,8 @@ def load_ulog(path: Path | str) -> OnboardLog:
         build.notes.append("no vehicle_attitude_groundtruth (not a simulator log)")
 
     parameter = ulog.initial_parameters.get("MAV_TYPE")
-    vehicle = int(parameter) if parameter is not None else mavlink2.MAV_TYPE_GENERIC
-    build.notes.append(
-        f"vehicle type {vehicle} from MAV_TYPE"
-        if parameter is not None
-        else "vehicle type unknown (no MAV_TYPE parameter)"
-    )
-    build.notes += build.timeline.notes()
+    build.notes.append(_vehicle_note(parameter))
+    vehicle = int(parameter) if _is_mav_type(parameter) else mavlink2.MAV_TYPE_GENERIC
     return OnboardLog(
         format="ulog",
         autopilot="PX4",
@@ -246,7 +296,27 @@ def load_ulog(path: Path | str) -> OnboardLog:
         declination=None,
         damage=LogDamage(
             bad_records=int(corrupt) + build.timeline.unreadable,
-            dropped_samples=build.timeline.dropped,
+            dropped_samples=build.timeline.dropped + build.timeline.off_timeline,
         ),
-        notes=tuple(build.notes),
+        notes=build.final_notes(),
     )
+
+
+_LAST_MAV_TYPE = 255  # (HEARTBEAT's type, a uint8)
+
+
+def _is_mav_type(parameter: Any) -> bool:
+    """Whether a MAV_TYPE parameter's value is one HEARTBEAT can carry: a whole number
+    0…255 (a damaged one may be anything, NaN included)."""
+    try:
+        return float(parameter).is_integer() and 0 <= float(parameter) <= _LAST_MAV_TYPE
+    except (TypeError, ValueError):
+        return False
+
+
+def _vehicle_note(parameter: Any) -> str:
+    if parameter is None:
+        return "vehicle type unknown (no MAV_TYPE parameter)"
+    if not _is_mav_type(parameter):
+        return f"MAV_TYPE {parameter} is no vehicle type: taken as generic"
+    return f"vehicle type {int(parameter)} from MAV_TYPE"

@@ -587,6 +587,14 @@ def _open_log(path: str | Path, config: ServiceConfig) -> _Source:
             path.name,
             config.input.imu,
         )
+    logged = sorted(imu.instance for imu in onboard.imus)
+    if config.input.imu_instance >= 0 and config.input.imu_instance not in logged:
+        log.warning(
+            "%s: --instance %d selects no IMU: the log's are instance %s",
+            path.name,
+            config.input.imu_instance,
+            ", ".join(map(str, logged)),
+        )
     return _Source(
         TlogReader(data, REPLAY_MESSAGES),
         f"{path} ({onboard.autopilot} {_ONBOARD_FORMATS.get(onboard.format, onboard.format)})",
