@@ -115,7 +115,8 @@ class RunReport:
     skipped_bytes: int = 0
     # what a bad record is: a tlog's packet, an onboard log's record
     bad_record_kind: str = "packets"
-    dropped_samples: int = 0  # an onboard log's samples whose time repeated or went back
+    # an onboard log's samples whose time repeated, went back or was far off the timeline
+    dropped_samples: int = 0
     outputs: Outputs = field(default_factory=Outputs)
     # an output file that stopped early (disk full, write error) → why
     output_errors: dict[Path, str] = field(default_factory=dict)
@@ -926,7 +927,8 @@ def format_summary(report: RunReport) -> str:
     )
     if report.bad_records or report.skipped_bytes or report.dropped_samples:
         dropped = (
-            f", {report.dropped_samples} samples dropped (their time repeated or went back)"
+            f", {report.dropped_samples} samples dropped"
+            " (their time repeated, went back or was far off)"
             if report.dropped_samples
             else ""
         )
