@@ -266,13 +266,13 @@ def test_the_handheld_profile_is_consistent_where_its_motion_prior_holds() -> No
     runs = 8
     low, high = chi2_band(6, runs * 4)
     small, bursts = (next(s for s in SCENARIOS if s.name == n) for n in ("small", "bursts"))
-    (own,) = monte_carlo([HANDHELD], small, runs)  # (measured 5.36, band [4.86, 7.26])
+    (own,) = monte_carlo([HANDHELD], small, runs)  # (measured 5.95, band [4.86, 7.26])
     assert low < own.anees < high, own
-    (own_bursts,) = monte_carlo([HANDHELD], bursts, runs)  # (measured 9.06)
+    (own_bursts,) = monte_carlo([HANDHELD], bursts, runs)  # (measured 9.31)
     assert own_bursts.anees > high, own_bursts
     default, handheld = monte_carlo([EstimatorConfig(), HANDHELD], small, runs)
     assert low < default.anees < high, default
-    assert handheld.anees > 2 * high, handheld  # (measured 23.8)
+    assert handheld.anees > 2 * high, handheld  # (measured 22.4)
     # only these keys differ from the defaults (the file's comments say why)
     changed = {
         f.name
@@ -282,6 +282,7 @@ def test_the_handheld_profile_is_consistent_where_its_motion_prior_holds() -> No
     assert changed == {
         "gyro_noise_density",
         "gyro_scale_noise_density",
+        "accel_alignment_sigma",
         "velocity_adapt_time",
         "velocity_time",
         "smooth_accel_time",

@@ -16,7 +16,9 @@ reported as results).
 alignment errors), ``velocity_adapt_time`` (0: the velocity model's σ fixed at
 ``velocity_sigma``; else measured from the data over that time) and ``velocity_time``
 (how long the vehicle's velocity stays correlated: a prior on the vehicle, which the
-IMU cannot measure, docs/design.md#motion-level-from-the-data): among the
+IMU cannot measure, docs/design.md#motion-level-from-the-data) and
+``accel_alignment_sigma`` (the accelerometer's alignment, added to the tilt σ: one
+filter run serves every value of it, :data:`ALIGNMENTS`): among the
 combinations whose mean inclination RMSE on the tuning half is within
 :data:`ACCURACY_SLACK` of the best, the one with the most trials whose tilt
 calibration ratio (RMS error / RMS σ, :mod:`mavest.evaluation.calibration`) lies in
@@ -26,8 +28,8 @@ first, then honesty. The profiles (:data:`PROFILES`):
 * ``adaptive`` (configs/adaptive.toml): for any vehicle; the velocity's correlation
   time stays the default's 1 s, and the white rate noise at 0.005.
 * ``handheld`` (configs/handheld.toml): for motion that goes back and forth within
-  reach, as BROAD's hand-held trials do; the correlation time and the white rate noise
-  are chosen too.
+  reach, as BROAD's hand-held trials do; the correlation time, the white rate noise and
+  the accelerometer's alignment are chosen too.
 
 9-D, with the 6-D choice: ``mag_heading_noise_density`` over :data:`GRID_MAG`, the one
 with the lowest mean total RMSE on the tuning half.
@@ -44,6 +46,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
+import math
 import statistics
 import sys
 import time
@@ -55,13 +58,15 @@ import numpy as np
 import mavest
 from mavest import EstimatorConfig
 from mavest.datasets.broad import BroadTrial, halves, list_trials, load_trial
+from mavest.estimator.frames import add_alignment
 from mavest.evaluation import report
 from mavest.evaluation.calibration import score_attitude
 from mavest.evaluation.metrics import rmse_deg
 from mavest.evaluation.peers import PEERS
 
-#: (gyro_noise_density, gyro_scale_noise_density, velocity_adapt_time, velocity_time)
-Values = tuple[float, float, float, float]
+#: (gyro_noise_density, gyro_scale_noise_density, velocity_adapt_time, velocity_time,
+#: accel_alignment_sigma)
+Values = tuple[float, float, float, float, float]
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,14 @@ class Profile:
     config_file: str
     grid: tuple[Values, ...]
     quick_grid: tuple[Values, ...]
+
+    def filter_runs(self, grid: Sequence[Values]) -> dict[Values, list[Values]]:
+        """The grid's points by the filter run they share: the accelerometer's alignment
+        changes only the covariance reported, added to one run's (:func:`score_6d`)."""
+        runs: dict[Values, list[Values]] = {}
+        for values in grid:
+            runs.setdefault((*values[:4], 0.0), []).append(values)
+        return runs
 
 
 #: The white rate noise of ``adaptive`` stays at 0.005 rad/s/√Hz, five times a MEMS
@@ -88,6 +101,10 @@ class Profile:
 #: tell linear acceleration from gravity below the low-pass's corner, so the data cannot
 #: measure it; ``adaptive`` keeps the default's 1 s (a vehicle's accelerations may last
 #: seconds), ``handheld`` chooses among shorter ones.
+#: The accelerometer's alignment, rad (0.1° to 0.3°): the tilt its averaged reading shows
+#: against BROAD's optical truth over the trials' rests is 0.05–0.33° (docs/design.md#the-
+#: accelerometers-alignment). ``adaptive`` keeps none: its σ is too large on BROAD as it is.
+ALIGNMENTS = tuple(math.radians(a) for a in (0.0, 0.1, 0.15, 0.2, 0.25, 0.3))
 PROFILES = {
     "adaptive": Profile(
         "adaptive",
@@ -95,10 +112,10 @@ PROFILES = {
         "configs/adaptive.toml",
         tuple(
             itertools.product(
-                (0.005,), (0.0, 0.0007, 0.0015, 0.003, 0.006), (0.0, 1.0, 3.0), (1.0,)
+                (0.005,), (0.0, 0.0007, 0.0015, 0.003, 0.006), (0.0, 1.0, 3.0), (1.0,), (0.0,)
             )
         ),
-        ((0.005, 0.0, 0.0, 1.0), (0.005, 0.0015, 3.0, 1.0)),
+        ((0.005, 0.0, 0.0, 1.0, 0.0), (0.005, 0.0015, 3.0, 1.0, 0.0)),
     ),
     "handheld": Profile(
         "handheld",
@@ -106,10 +123,14 @@ PROFILES = {
         "configs/handheld.toml",
         tuple(
             itertools.product(
-                (0.005, 0.002, 0.001), (0.0, 0.0007, 0.0015, 0.003), (1.0, 3.0), (1.0, 0.3, 0.1)
+                (0.005, 0.002, 0.001),
+                (0.0, 0.0007, 0.0015, 0.003),
+                (1.0, 3.0),
+                (1.0, 0.3, 0.1),
+                ALIGNMENTS,
             )
         ),
-        ((0.005, 0.0, 1.0, 1.0), (0.001, 0.0015, 3.0, 0.1)),
+        ((0.005, 0.0, 1.0, 1.0, 0.0), (0.001, 0.0015, 3.0, 0.1, ALIGNMENTS[-1])),
     ),
 }
 GRID_MAG: tuple[float, ...] = (0.02, 0.04, 0.08, 0.16)
@@ -128,30 +149,44 @@ class TrialScore:
 
 
 def config_6d(values: Values) -> EstimatorConfig:
-    gyro, scale, adapt, velocity_time = values
+    gyro, scale, adapt, velocity_time, alignment = values
     return EstimatorConfig(
         gyro_noise_density=gyro,
         gyro_scale_noise_density=scale,
         velocity_adapt_time=adapt,
         velocity_time=velocity_time,
+        accel_alignment_sigma=alignment,
     )
 
 
 def describe(values: Values, mag: float) -> str:
-    gyro, scale, adapt, velocity_time = values
+    gyro, scale, adapt, velocity_time, alignment = values
     return (
         f"gyro {gyro:g}, scale {scale:g}, adapt {adapt:g} s, velocity time "
-        f"{velocity_time:g} s, mag {mag:g}"
+        f"{velocity_time:g} s, alignment {math.degrees(alignment):g}°, mag {mag:g}"
     )
 
 
-def score_6d(trial: BroadTrial, config: EstimatorConfig) -> TrialScore:
-    series = mavest.estimate(trial.t, trial.gyro, trial.accel, None, config)
-    tilt, _, _ = score_attitude(
-        trial.t, series.q, series.cov, trial.truth_q, trial.movement, config.error
-    )
+def score_6d(
+    trial: BroadTrial, config: EstimatorConfig, alignments: Sequence[float] | None = None
+) -> list[TrialScore]:
+    """The trial's scores with ``config``, for each of these accelerometer alignments
+    (rad) in its place (None: the config's own): one filter run, the alignment added to
+    its covariance as the filter adds it (:func:`mavest.estimator.frames.add_alignment`)."""
+    if alignments is None:
+        alignments = (config.accel_alignment_sigma,)
+    base = config.replace(accel_alignment_sigma=0.0)
+    series = mavest.estimate(trial.t, trial.gyro, trial.accel, None, base)
     inclination = rmse_deg(series.q, trial.truth_q, trial.movement)["inclination"]
-    return TrialScore(inclination, tilt.ratio, tilt.rank_correlation)
+    scores = []
+    for alignment in alignments:
+        cov = series.cov.copy()
+        add_alignment(series.q, alignment**2, config.error == "right", cov)
+        tilt, _, _ = score_attitude(
+            trial.t, series.q, cov, trial.truth_q, trial.movement, config.error
+        )
+        scores.append(TrialScore(inclination, tilt.ratio, tilt.rank_correlation))
+    return scores
 
 
 def total_9d(trial: BroadTrial, config: EstimatorConfig) -> float:
@@ -268,13 +303,15 @@ def main(argv: list[str] | None = None) -> int:
     grid = profile.quick_grid if args.quick else profile.grid
     vqf = [rmse_deg(_peer(t, False), t.truth_q, t.movement)["inclination"] for t in trials]
     vqf_9d = [rmse_deg(_peer(t, True), t.truth_q, t.movement)["total"] for t in trials]
-    default = [score_6d(t, DEFAULT) for t in trials]
+    default = [score_6d(t, DEFAULT)[0] for t in trials]
     default_9d = [total_9d(t, DEFAULT) for t in trials]
-    table_6d = {}
-    for values in grid:
-        table_6d[values] = [score_6d(t, config_6d(values)) for t in trials]
+    table_6d: dict[Values, list[TrialScore]] = {}
+    for run, points in profile.filter_runs(grid).items():
+        per_trial = [score_6d(t, config_6d(run), [v[4] for v in points]) for t in trials]
+        for k, values in enumerate(points):
+            table_6d[values] = [scores[k] for scores in per_trial]
         print(
-            f"6-D {values}: {np.mean([s.inclination for s in table_6d[values]]):.3f}°",
+            f"6-D {run[:4]}: {np.mean([s[0].inclination for s in per_trial]):.3f}°",
             file=sys.stderr,
             flush=True,
         )
@@ -297,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
         Direction("B", "A", a, choices["B"], mag_for(choices["B"], b)),
     ]
     overall = (choices["all"], mag_for(choices["all"], everything))
-    gyro, scale, adapt, velocity_time = overall[0]
+    gyro, scale, adapt, velocity_time, alignment = overall[0]
     with report.results_section(args.results, profile.title, __file__, argv, __doc__):
         print(
             f"Profile {profile.name} ({profile.config_file}). Halves of the {len(trials)} "
@@ -316,7 +353,9 @@ def main(argv: list[str] | None = None) -> int:
             f"The rule applied to all {len(trials)} trials (what {profile.config_file} sets; "
             "the defaults keep the velocity's level fixed): gyro_noise_density "
             f"{gyro:g}, gyro_scale_noise_density {scale:g}, velocity_adapt_time {adapt:g} s, "
-            f"velocity_time {velocity_time:g} s, mag_heading_noise_density {overall[1]:g}. "
+            f"velocity_time {velocity_time:g} s, accel_alignment_sigma "
+            f"{math.degrees(alignment):g}° ({alignment:.6g} rad), "
+            f"mag_heading_noise_density {overall[1]:g}. "
             "(In the A → B and B → A rows the halves chose "
             + "; ".join(f"{d.tuned_on}: {describe(d.choice_6d, d.choice_mag)}" for d in directions)
             + ".)"

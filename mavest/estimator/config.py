@@ -45,6 +45,8 @@ STANDARD_GRAVITY = 9.80665  # m/s², the value MAVLink's mG units are defined wi
 # flight (IMUs range to ±16 or ±32 g): the service drops such samples, and the
 # smoother's average of the accelerometer leaves them out.
 MAX_SPECIFIC_FORCE = 50.0 * STANDARD_GRAVITY  # m/s²
+# An accelerometer misaligned by more than this is mounted wrong, not miscalibrated.
+MAX_ALIGNMENT_SIGMA = math.radians(10.0)  # rad
 
 # A gyro rate beyond this on any axis is a broken sensor or a corrupt packet, never
 # flight (≈ 2900°/s; MEMS gyros range to ±2000°/s): the filter skips such a sample as it
@@ -117,6 +119,12 @@ class EstimatorConfig:
     # this × |ω| on top of gyro_noise_density (0: none).
     gyro_scale_noise_density: float = 0.0  # √s
     accel_noise_density: float = 0.02  # m/s²/√Hz
+    # The accelerometer's alignment: how far (1σ, each horizontal axis) the gravity
+    # direction it measures at rest is from the true vertical, from its calibration
+    # (offset, scale, misalignment) and the IMU's mounting. No update can remove
+    # that error, so it is added to the tilt covariance the estimate reports, not to
+    # the filter's own (docs/design.md#the-accelerometers-alignment). 0: none.
+    accel_alignment_sigma: float = 0.0  # rad
     gravity: float = STANDARD_GRAVITY
 
     # Accelerometer robustness in dynamic motion.
@@ -287,6 +295,10 @@ class EstimatorConfig:
         _require(self.max_jump > 0.0, f"max_jump must be > 0 (inf: never), got {self.max_jump}")
         _require(self.gyro_clip > 0.0, f"gyro_clip must be > 0 (inf: never), got {self.gyro_clip}")
         _require(0.0 < self.accel_lowpass_damping <= 1.0, "accel_lowpass_damping must be in (0, 1]")
+        _require(
+            self.accel_alignment_sigma <= MAX_ALIGNMENT_SIGMA,
+            f"accel_alignment_sigma must be at most {MAX_ALIGNMENT_SIGMA:g} rad (10°)",
+        )
         for name in (
             "gyro_noise_density",
             "accel_noise_density",
@@ -334,6 +346,7 @@ class EstimatorConfig:
             "mag_tilt_leak_time",
             "velocity_adapt_time",
             "smooth_accel_time",
+            "accel_alignment_sigma",
         ):
             require_number(name, getattr(self, name), zero=True)
         for name in ("initial_bias", "compass_ofs", "compass_dia", "compass_odi"):

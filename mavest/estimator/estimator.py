@@ -23,6 +23,7 @@ from mavest import so3
 from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
 from mavest.estimator.config import MAX_ANGULAR_RATE, EstimatorConfig, config_or_default
+from mavest.estimator.frames import add_reported_alignment
 from mavest.estimator.heading import turn_heading
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.linalg import copy_into, copy_matrix_into
@@ -105,6 +106,7 @@ def _run_batch(
         copy_into(out_q[i], s.q)
         copy_into(out_bias[i], s.b)
         copy_matrix_into(out_cov[i], s.P[:N_ERROR, :N_ERROR])
+        add_reported_alignment(s, c, out_cov[i])
         copy_into(out_innovation[i], s.innovation)
         out_nis[i] = s.nis
         out_accel_used[i] = s.accel_used != 0
@@ -465,6 +467,8 @@ class Estimator:
 
     @property
     def cov(self) -> np.ndarray:
+        """The filter's own P (6×6), what :meth:`initialise` takes: without the
+        accelerometer's alignment, which an estimate's ``cov`` adds."""
         return self._state["P"][0, :N_ERROR, :N_ERROR].copy()
 
     @property

@@ -19,7 +19,7 @@ import math
 import numpy as np
 
 from mavest import so3
-from mavest._jit import inplace_kernel
+from mavest._jit import inplace_inlined_kernel, inplace_kernel, kernel
 from mavest.estimator.charts import reset_jacobian_into, retract_into
 from mavest.estimator.layout import ERROR_LEFT, N_AXES, N_ERROR, CoefficientsRecord, StateRecord
 from mavest.estimator.linalg import (
@@ -52,10 +52,51 @@ def set_identity(M: np.ndarray) -> None:
 
 
 @inplace_kernel
+def vertical_of(q: np.ndarray) -> tuple[float, float, float]:
+    """Rᵀ e₃ for R = R(q): the world vertical in the body frame (the third row of R)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+
+
+@inplace_kernel
 def vertical_in_body(s: StateRecord) -> tuple[float, float, float]:
     """R̄ᵀ e₃: the world vertical in the body frame (the third row of R̄)."""
-    w, x, y, z = s.q[0], s.q[1], s.q[2], s.q[3]
-    return 2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)
+    return vertical_of(s.q)
+
+
+@inplace_kernel
+def add_alignment_into(q: np.ndarray, variance: float, right: bool, cov: np.ndarray) -> None:
+    """The accelerometer's alignment added to an estimate's attitude covariance ``cov``
+    (its δθ block, 3×3 at least): ``variance`` on each world horizontal axis, none on the
+    vertical, whatever the attitude (docs/design.md#the-accelerometers-alignment).
+    In the world frame (left error) diag(v, v, 0); in the body frame (right error)
+    Rᵀ diag(v, v, 0) R = v (I − u uᵀ), u = Rᵀ e₃ the vertical in the body."""
+    if variance == 0.0:
+        return
+    if not right:
+        cov[0, 0] += variance
+        cov[1, 1] += variance
+        return
+    u = vertical_of(q)
+    for i in range(3):
+        for j in range(3):
+            cov[i, j] += variance * ((1.0 if i == j else 0.0) - u[i] * u[j])
+
+
+@kernel
+def add_alignment(q: np.ndarray, variance: float, right: bool, cov: np.ndarray) -> None:
+    """:func:`add_alignment_into` for each estimate of a series: q (N, 4), cov (N, 6, 6)."""
+    for k in range(q.shape[0]):
+        add_alignment_into(q[k], variance, right, cov[k])
+
+
+@inplace_inlined_kernel
+def add_reported_alignment(s: StateRecord, c: CoefficientsRecord, cov: np.ndarray) -> None:
+    """The accelerometer's alignment (``c.alignment_var``) added to ``cov``, a copy of P's
+    6×6 that an estimate reports: the filter leaves it out of its own P, as no update can
+    remove it."""
+    if c.alignment_var != 0.0:
+        add_alignment_into(s.q, c.alignment_var, c.error != ERROR_LEFT, cov)
 
 
 @inplace_kernel

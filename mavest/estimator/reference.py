@@ -416,7 +416,13 @@ class ReferenceFilter:
         return self.estimate()
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.q.copy(), self.b.copy(), self.P[:6, :6].copy()
+        """q, b and the covariance reported: P's attitude and bias, and the
+        accelerometer's alignment on the world's two horizontal axes, which no update
+        removes (docs/design.md#the-accelerometers-alignment)."""
+        cov = self.P[:6, :6].copy()
+        cov[0, 0] += self.config.accel_alignment_sigma**2  # (left error: δθ in the world)
+        cov[1, 1] += self.config.accel_alignment_sigma**2
+        return self.q.copy(), self.b.copy(), cov
 
     # -- initial alignment (docs/design.md#health-rules, "Input") -------------
 

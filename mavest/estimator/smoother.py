@@ -38,6 +38,7 @@ from mavest.estimator.estimator import (
     estimate,
     refuse_wrong_unit,
 )
+from mavest.estimator.frames import add_alignment
 from mavest.estimator.fusion import fuse_block
 from mavest.estimator.layout import StepFlags
 from mavest.estimator.zero_phase import zero_phase_blocks
@@ -155,7 +156,9 @@ def smooth_forward(
     """Smooth a forward pass already run over these samples with this configuration
     (e.g. one started from a known state with :meth:`Estimator.initialise`; on
     :func:`forward_accel`'s accelerometer, as :func:`smooth`'s is, or on the samples as
-    measured). ``accel`` is what the backward pass takes: the samples as measured.
+    measured), its cov as the filter reports it (with the configuration's
+    ``accel_alignment_sigma``). ``accel`` is what the backward pass takes: the samples
+    as measured.
 
     ``forward``'s q, bias and cov arrays are overwritten with the smoothed ones (a
     recording's estimates are most of what smoothing holds in memory; this way it
@@ -190,7 +193,17 @@ def smooth_forward(
     t_last = t[last]
     heading_known = (forward.flags & StepFlags.HEADING_ALIGNED) != 0
     forward_heading = np.logical_or.accumulate(heading_known | forward.mag_used)
-    backward = Estimator(config.replace(initial_bias=tuple(-np.asarray(config.initial_bias))))
+    # The passes are fused on the filter's own covariances: the accelerometer's alignment
+    # is the same error in both, not two independent ones, and no fusing removes it. It
+    # is taken off the forward pass's and added to the smoothed ones at the end.
+    alignment = config.accel_alignment_sigma**2
+    right = config.error == "right"
+    add_alignment(forward.q, -alignment, right, forward.cov)
+    backward = Estimator(
+        config.replace(
+            initial_bias=tuple(-np.asarray(config.initial_bias)), accel_alignment_sigma=0.0
+        )
+    )
     if backward_start is None:
         # The backward pass starts at the forward pass's last attitude, with the
         # configured initial bias and uncertainty: its value is taken, not its certainty
@@ -260,4 +273,5 @@ def smooth_forward(
         )
         after_flags = out.flags[-1]
         after_q, after_b, after_P = out.q[-1].copy(), out.bias[-1].copy(), out.cov[-1].copy()
+    add_alignment(forward.q, alignment, right, forward.cov)
     return forward

@@ -42,6 +42,9 @@ class ImuNoise:
     mag_heading_noise_density: float = 0.08  # rad·√s, the field's azimuth
     # white gyro noise of density this × |ω| on top (scale and alignment errors)
     gyro_scale_noise_density: float = 0.0  # √s
+    # the accelerometer turned off the body by a constant rotation about the body's x and
+    # y axes, each drawn with this σ: the gravity direction it measures is that far off
+    accel_alignment_sigma: float = 0.0  # rad
 
     @classmethod
     def matching(cls, config: EstimatorConfig) -> ImuNoise:
@@ -53,6 +56,7 @@ class ImuNoise:
             config.accel_noise_density,
             config.mag_heading_noise_density,
             config.gyro_scale_noise_density,
+            config.accel_alignment_sigma,
         )
 
 
@@ -253,6 +257,9 @@ def simulate(
     linear[1:] += np.diff(velocity, axis=0) / np.diff(t)[:, None]  # held over each sample
     specific_force_world = linear - np.array([0.0, 0.0, gravity])
     accel = rotate_to_body(q, specific_force_world)
+    if noise.accel_alignment_sigma > 0.0:  # (its own stream: the other draws stay as they were)
+        tilt = np.random.default_rng(seed + 3).normal(0.0, noise.accel_alignment_sigma, 2)
+        accel = accel @ so3.exp(np.array([tilt[0], tilt[1], 0.0])).T
     accel += rng.normal(0.0, noise.accel_noise_density / math.sqrt(dt), (n, 3))
     # the magnetometer's error as the filter models it: white noise on the
     # field's azimuth (its norm and dip stay those of an undisturbed field)
