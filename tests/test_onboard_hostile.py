@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from dataflash_writer import DataflashWriter
 
 from mavest.mavlink.messages import MAVLink
 from mavest.onboard import OnboardLog, OnboardLogError, load
@@ -27,50 +28,22 @@ from mavest.service.runners import replay
 # Writing DataFlash logs
 # --------------------------------------------------------------------------
 
-STRUCT = {
-    "b": "b", "B": "B", "h": "h", "H": "H", "i": "i", "I": "I", "f": "f", "d": "d",
-    "n": "4s", "N": "16s", "Z": "64s", "c": "h", "C": "H", "e": "i", "E": "I",
-    "L": "i", "q": "q", "Q": "Q",
-}  # fmt: skip
 IMU_FORMAT, IMU_COLUMNS = "QffffffI", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG"
 START_US, STEP_US = 10_000_000, 2500  # 400 Hz
 
 
-class Dataflash:
-    """A DataFlash log: FMT records, then records of the formats defined."""
-
-    def __init__(self) -> None:
-        self.out = bytearray()
-        self.formats: dict[str, tuple[int, str]] = {}
-        self.define(128, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns")
-
-    def define(self, kind: int, name: str, fmt: str, columns: str) -> None:
-        length = 3 + struct.calcsize("<" + "".join(STRUCT[c] for c in fmt))
-        self.formats[name] = (kind, fmt)
-        fields = (kind, length, name.encode(), fmt.encode(), columns.encode())
-        self.out += b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", *fields)
-
-    def record(self, name: str, *values: object) -> None:
-        kind, fmt = self.formats[name]
-        values = tuple(v.encode() if isinstance(v, str) else v for v in values)
-        self.out += b"\xa3\x95" + bytes([kind])
-        self.out += struct.pack("<" + "".join(STRUCT[c] for c in fmt), *values)
-
-    def save(self, path: Path) -> Path:
-        path.write_bytes(bytes(self.out))
-        return path
-
-
-def imu_log(times: list[int] | None = None, samples: int = 1000) -> Dataflash:
+def imu_log(times: list[int] | None = None, samples: int = 1000) -> DataflashWriter:
     """IMU samples at rest at ``times`` (µs), by default ``samples`` of them at 400 Hz."""
-    log = Dataflash()
+    log = DataflashWriter()
     log.define(200, "IMU", IMU_FORMAT, IMU_COLUMNS)
     for t in times if times is not None else [START_US + STEP_US * k for k in range(samples)]:
         log.record("IMU", t, 0.001, -0.002, 0.0005, 0.1, -0.05, -9.80665, 0)
     return log
 
 
-def with_others(log: Dataflash, defined: dict[str, tuple[str, str]], samples: int = 100) -> None:
+def with_others(
+    log: DataflashWriter, defined: dict[str, tuple[str, str]], samples: int = 100
+) -> None:
     """MAG, ATT, GPS and PARM records beside the IMU's, in the formats ``defined`` gives
     (by name: format, columns), else the usual ones."""
     formats = {
@@ -148,7 +121,7 @@ def test_an_imu_redefined_without_its_columns_is_one_line_naming_the_file(
 def test_an_imu_type_without_a_time_column_is_left_out_and_the_others_read(
     tmp_path: Path,
 ) -> None:
-    log = Dataflash()
+    log = DataflashWriter()
     log.define(200, "IMU", "ffffffI", "GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG")
     log.define(201, "IMU2", IMU_FORMAT, IMU_COLUMNS)
     for k in range(1000):
@@ -168,7 +141,7 @@ INSTANCED = ("QiffffffI", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG")
 
 @pytest.mark.parametrize("wrong", [1000, -1])
 def test_an_impossible_imu_instance_is_left_out_with_one_line(tmp_path: Path, wrong: int) -> None:
-    log = Dataflash()
+    log = DataflashWriter()
     log.define(200, "IMU", *INSTANCED)
     for k in range(400):
         for instance in (0, wrong):
@@ -178,7 +151,7 @@ def test_an_impossible_imu_instance_is_left_out_with_one_line(tmp_path: Path, wr
     assert "IMU: 400 records with an instance I outside 0…255 left out" in notes_of(loaded)
     to_tlog_bytes(loaded)
 
-    only = Dataflash()
+    only = DataflashWriter()
     only.define(200, "IMU", *INSTANCED)
     for k in range(10):
         only.record("IMU", START_US + STEP_US * k, wrong, 0, 0, 0, 0, 0, -9.8, 0)
@@ -187,7 +160,7 @@ def test_an_impossible_imu_instance_is_left_out_with_one_line(tmp_path: Path, wr
 
 
 def test_two_sensors_on_one_instance_are_not_merged(tmp_path: Path) -> None:
-    log = Dataflash()
+    log = DataflashWriter()
     log.define(200, "IMU", "QBffffffI", INSTANCED[1])
     log.define(201, "IMU2", IMU_FORMAT, IMU_COLUMNS)
     for k in range(500):
@@ -247,7 +220,7 @@ def test_a_log_of_every_record_twice_keeps_each_once(tmp_path: Path) -> None:
 
 
 def test_float_times_that_are_not_numbers_are_skipped(tmp_path: Path) -> None:
-    log = Dataflash()
+    log = DataflashWriter()
     log.define(200, "IMU", "fffffff", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ")
     for k in range(1000):
         t = math.nan if k % 100 == 0 else float(START_US + STEP_US * k)  # the first too
