@@ -276,6 +276,8 @@ def test_a_clock_that_goes_back_and_stays_keeps_every_sample(tmp_path: Path) -> 
     report = asyncio.run(replay(tmp_path / "back.bin", ServiceConfig()))
     (stream,) = report.streams
     assert stream.stats.estimated == 4000 and stream.stats.reboots == 1
+    # how long it was estimated: both timelines, not the last time less the first
+    assert stream.stats.span == pytest.approx((2499 + 1499) * STEP_US * 1e-6)
 
 
 # --------------------------------------------------------------------------

@@ -929,7 +929,7 @@ class BulkFeed:
         notable = skipped | is_news(flags)
         if not stream.heading_source_reported and kept.shape[0]:
             first_t = stats.first_t if stats.first_t is not None else float(t[kept[0]])
-            due = kept[heading_source_due(stream, t[kept] - first_t)]
+            due = kept[heading_source_due(stream, stats.earlier_span + t[kept] - first_t)]
             if due.shape[0]:
                 notable[due[0]] = True
         last_t = stats.last_t

@@ -171,14 +171,16 @@ class StreamStats:
     gps_aided: int = 0  # samples with the vehicle's acceleration from GPS removed
     airspeed_aided: int = 0  # samples with the centripetal term from airspeed removed
     answered: int = 0  # ATTITUDE messages sent for this stream
-    first_t: float | None = None
+    first_t: float | None = None  # the first estimate's time on the current timeline
     last_t: float | None = None
+    earlier_span: float = 0.0  # s estimated on the timelines before a reboot
 
     @property
     def span(self) -> float:
+        """How long the stream has been estimated, over every timeline, s."""
         if self.first_t is None or self.last_t is None:
-            return 0.0
-        return self.last_t - self.first_t
+            return self.earlier_span
+        return self.earlier_span + self.last_t - self.first_t
 
 
 @dataclass
@@ -612,6 +614,7 @@ class Pipeline:
                 stats.last_t or 0.0,
                 t,
             )
+            stats.earlier_span, stats.first_t = stats.span, None  # (a new timeline's span)
             stream.estimator.reset()
             stream.next_output = -math.inf
             stream.vs_autopilot.restart()
