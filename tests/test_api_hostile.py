@@ -341,6 +341,22 @@ def test_complex_inputs_are_refused_not_cut_to_their_real_part(name: str) -> Non
                 run(**inputs)
 
 
+@pytest.mark.parametrize("vector", ["gyro", "accel", "mag"])
+def test_a_list_of_complex_numbers_is_refused_by_every_update(vector: str) -> None:
+    """Given one sample at a time, as a list: numpy would take its real part, with only a
+    ComplexWarning (the compiled update reads a list of Python floats itself and hands
+    anything else to the same conversion as the Python one)."""
+    sample = {"gyro": [0.0, 0.0, 0.0], "accel": [0.0, 0.0, -G], "mag": [20.0, 0.0, 40.0]}
+    sample[vector] = [0.1 + 2j, 0.0, 0.0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for estimator in (Estimator(), Estimator(batch_fed=True)):
+            for k in range(300):  # (the first are batches of one; then the online step)
+                estimator.update(0.01 * (k + 1), [0.0, 0.0, 0.0], [0.0, 0.0, -G])
+            with pytest.raises(TypeError, match=f"{vector} must be real numbers"):
+                estimator.update(5.0, **sample)
+
+
 # --- a batch-fed estimator's lone samples ---------------------------------------------------
 
 

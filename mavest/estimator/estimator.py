@@ -235,17 +235,8 @@ SERIES_FIELDS: dict[str, tuple[tuple[int, ...], np.dtype]] = {
 }
 
 
-def _real_array(value: ArrayLike, name: str) -> np.ndarray:
-    """``value`` as a C-contiguous float64 array; a TypeError for complex numbers or text
-    (which numpy would convert, dropping the imaginary part or parsing the text)."""
-    array = np.asarray(value)
-    if array.dtype.kind in "cUS":
-        raise TypeError(f"{name} must be real numbers, got {array.dtype} values")
-    return np.ascontiguousarray(array, dtype=np.float64)
-
-
 def _series3(value: ArrayLike, n: int, name: str) -> np.ndarray:
-    array = _real_array(value, name)
+    array = online.real_array(value, name)
     if array.shape != (n, 3):
         raise ValueError(f"{name} must have shape ({n}, 3), got {array.shape}")
     return array
@@ -261,7 +252,7 @@ def batch_inputs(
     """A batch's inputs as :meth:`Estimator.update_batch` takes them: float64,
     C-contiguous, ``t`` (N,) and the others (N, 3) (None stays None); ValueError
     naming the input whose shape is wrong."""
-    t = _real_array(t, "t")
+    t = online.real_array(t, "t")
     if t.ndim != 1:
         raise ValueError(f"t must be one-dimensional, got shape {t.shape}")
     n = t.shape[0]

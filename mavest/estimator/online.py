@@ -99,8 +99,17 @@ def warn_accel_unit(state: np.ndarray, stacklevel: int) -> None:
     warnings.warn(accel_unit_message(state), AccelUnitWarning, stacklevel=stacklevel + 1)
 
 
+def real_array(value: ArrayLike, name: str) -> np.ndarray:
+    """``value`` as a C-contiguous float64 array; a TypeError for complex numbers or text
+    (which numpy would convert, dropping the imaginary part or parsing the text)."""
+    array = np.asarray(value)
+    if array.dtype.kind in "cUS":
+        raise TypeError(f"{name} must be real numbers, got {array.dtype} values")
+    return np.ascontiguousarray(array, dtype=np.float64)
+
+
 def vector3(value: ArrayLike, name: str) -> np.ndarray:
-    array = np.asarray(value, dtype=np.float64)
+    array = real_array(value, name)
     if array.shape != (3,):
         raise ValueError(f"{name} must have 3 components, got shape {array.shape}")
     return array
