@@ -66,6 +66,15 @@ def test_a_service_time_or_rate_must_be_finite(tmp_path: Path, table: str, key: 
     assert getattr(getattr(ServiceConfig.from_toml(path), table), key) == 2.5
 
 
+@pytest.mark.parametrize("table", ["input", "output", "signing", "estimator"])
+def test_a_section_that_is_not_a_table_is_refused_by_name(tmp_path: Path, table: str) -> None:
+    """``output = 5`` for ``[output]`` was a TypeError traceback from the service's tables."""
+    path = tmp_path / "c.toml"
+    path.write_text(f"{table} = 5\n")
+    with pytest.raises(ConfigError, match=rf"\[{table}\] must be a table of settings, got int 5"):
+        ServiceConfig.from_toml(path)
+
+
 def test_a_file_that_is_not_text_is_not_a_toml_file(tmp_path: Path) -> None:
     path = tmp_path / "flight.tlog"
     path.write_bytes(b"\x00\x05\xfd\x09\xfe" * 50)

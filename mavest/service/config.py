@@ -21,6 +21,7 @@ from mavest.estimator.config import (
     check_types,
     read_toml,
     require_number,
+    require_table,
 )
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import (
@@ -191,6 +192,7 @@ class ServiceConfig:
 
 
 def _table(cls: type, values: dict[str, Any], name: str) -> Any:
+    require_table(values, name)
     known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - known)
     _require(
