@@ -40,6 +40,7 @@ from numba.core import event as numba_event
 
 from mavest import __version__
 from mavest.estimator import AccelUnitWarning, ConfigError, EstimatorConfig, StepFlags, estimate
+from mavest.estimator.config import MAX_ANGULAR_RATE
 from mavest.mavlink.links import LinkError
 from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import KEY_ENVIRONMENT_VARIABLE, Signing
@@ -617,7 +618,7 @@ def _estimate_table(args: argparse.Namespace) -> int:
             write_atomically(args.output, text.getvalue().encode())
         except OSError as error:
             raise UsageError(f"cannot write {args.output}: {error.strerror}") from None
-    for line in _flag_summary(out.flags, table[:, 0], config):
+    for line in _flag_summary(out.flags, table[:, 0], table[:, 1:4], config):
         log.warning("%s: %s", args.input, line)
     return 0
 
@@ -635,7 +636,9 @@ _TOLD_FLAGS = (
 )
 
 
-def _flag_summary(flags: np.ndarray, t: np.ndarray, config: EstimatorConfig) -> list[str]:
+def _flag_summary(
+    flags: np.ndarray, t: np.ndarray, gyro: np.ndarray, config: EstimatorConfig
+) -> list[str]:
     """A line per kind of problem the samples' flags tell of, named as
     :meth:`StepFlags.describe` names the flags: the samples skipped, by reason, then a
     count for each of :data:`_TOLD_FLAGS`, with the likely unit mistake where there is one."""
@@ -650,9 +653,17 @@ def _flag_summary(flags: np.ndarray, t: np.ndarray, config: EstimatorConfig) -> 
     skipped = count(StepFlags.SKIPPED)
     if skipped:
         reasons = [getattr(StepFlags, reason) for reason in StepFlags.describe(StepFlags.SKIPPED)]
+        # a finite rate beyond any gyro's: read in °/s, most likely
+        too_fast = np.isfinite(gyro).all(axis=1) & (np.abs(gyro) > MAX_ANGULAR_RATE).any(axis=1)
+        unit = (
+            f"; beyond {MAX_ANGULAR_RATE:g} rad/s: °/s? the gyro must be in rad/s"
+            if too_fast.any()
+            else ""
+        )
         lines.append(
             f"{skipped} sample{'s' if skipped != 1 else ''} skipped: "
             + ", ".join(f"{name(bit)} ({count(bit)})" for bit in reasons if count(bit))
+            + unit
         )
     steps = np.diff(t[np.isfinite(t)])
     step = float(np.median(steps[steps > 0.0])) if np.any(steps > 0.0) else 0.0

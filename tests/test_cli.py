@@ -191,8 +191,13 @@ def test_a_header_with_a_byte_order_mark_crlf_and_spaces_is_read(tmp_path: Path)
             1.0,
             ["gyro clipped: 1 sample (beyond gyro_clip = 33.86: °/s? the gyro must be in rad/s)"],
         ),
+        (
+            {"gx": (50, 100.0)},
+            1.0,
+            ["1 sample skipped: gyro invalid (1); beyond 50 rad/s: °/s? the gyro must be in rad/s"],
+        ),
     ],
-    ids=["clean", "nan", "back", "jump", "ms", "clipped"],
+    ids=["clean", "nan", "back", "jump", "ms", "clipped", "beyond"],
 )
 def test_estimate_says_what_the_flags_tell_of_its_samples(
     tmp_path: Path,
