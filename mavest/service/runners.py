@@ -690,6 +690,9 @@ async def run_live(
     # Signals are ours from here on: one that arrives while the filter loads or the files
     # open stops the run as soon as it listens, with its files closed properly.
     with stop_on_signals(stop) as stopping:
+        # (the run's time includes the filter's loading, as a replay's does: the summary
+        # takes the compiling out of it, which would else be counted twice)
+        start = time.perf_counter()
         # Compile (or load) the filter before listening: the first IMU packet must not
         # wait for it.
         _warm_up(config)
@@ -707,7 +710,6 @@ async def run_live(
             log.info("%s", signing.describe())
         report = RunReport(pipeline, 0.0, source=connection, outputs=outputs)
         tasks: list[asyncio.Task[None]] = []
-        start = time.perf_counter()
         try:
             await _serve(pipeline, links, config, opened, status_period, ready, stopping, tasks)
         except Exception:
