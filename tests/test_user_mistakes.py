@@ -219,32 +219,53 @@ def test_an_unknown_host_is_said_to_be_not_found() -> None:
         asyncio.run(open_())
 
 
-def test_udpbcast_sends_to_whoever_answers() -> None:
+@pytest.mark.parametrize("answered", ["MAVLink", "noise"])
+def test_udpbcast_sends_to_whoever_answers_with_mavlink(answered: str) -> None:
+    """To the broadcast address until a peer answers with a MAVLink packet, then to that
+    peer only; an answer of noise (a port scan, another protocol) changes nothing."""
     port = free_port(socket.SOCK_DGRAM)
     peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     peer.bind(("127.0.0.1", port))
     peer.settimeout(5)
+    heartbeat = mavlink2.MAVLink_heartbeat_message(2, 3, 0, 0, 0, 3)
+    reply = heartbeat.pack(mavlink2.MAVLink(None, 1, 1)) if answered == "MAVLink" else b"answer"
 
-    async def scenario() -> bytes:
+    async def scenario() -> tuple[bytes | None, bytes | None]:
         received: list[bytes] = []
         link = make_link(parse_endpoint(f"udpbcast:127.0.0.1:{port}"))
         await link.start(lambda _link, data, _peer: received.append(data))
         link.send(b"hello")
         _, address = peer.recvfrom(100)
+        peer.settimeout(1)
         answer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # from another port
-        answer.sendto(b"answer", address)
+        answer.settimeout(1)
+        answer.sendto(reply, address)
         for _ in range(100):
             if received:
                 break
             await asyncio.sleep(0.02)
         link.send(b"after")
-        data = await asyncio.get_running_loop().run_in_executor(None, answer.recv, 100)
+        loop = asyncio.get_running_loop()
+        to_answerer = await loop.run_in_executor(None, _received, answer)
+        to_broadcast = await loop.run_in_executor(None, _received, peer)
         link.close()
         answer.close()
-        return data
+        return to_answerer, to_broadcast
 
-    assert asyncio.run(scenario()) == b"after"
+    to_answerer, to_broadcast = asyncio.run(scenario())
     peer.close()
+    if answered == "MAVLink":
+        assert (to_answerer, to_broadcast) == (b"after", None)
+    else:
+        assert (to_answerer, to_broadcast) == (None, b"after")
+
+
+def _received(sock: socket.socket) -> bytes | None:
+    """The next datagram on ``sock``, None if none comes before its timeout."""
+    try:
+        return sock.recv(100)
+    except TimeoutError:
+        return None
 
 
 # ------------------------------------------------------------------ CSV

@@ -10,6 +10,9 @@ Every path on which mavest reads or writes MAVLink bytes itself goes through her
   only itself.
 * :func:`scan_packets` does the same for bare packets, as a UDP datagram holds them:
   :func:`mavest.mavlink.wire.decode_datagram` builds message objects from its index.
+* :func:`find_packets` finds the clean packets among damage (noise, false starts,
+  bad CRCs, ids the dialect does not know) in what the live links hear, stepping
+  past each bad start to the next start byte.
 * :func:`pack_rows` packs messages, one or many at a time, as pymavlink packs them
   (MAVLink 2 with the payload's trailing zeros cut, or MAVLink 1, the base fields
   whole), each with its own sequence number: mavest's own messages on the live
@@ -212,6 +215,87 @@ def scan_packets(data: np.ndarray) -> tuple[np.ndarray, int]:
     out = np.empty((8, data.shape[0] // _SMALLEST_PACKET + 1), dtype=np.int64)
     count, end, _ = _scan(data, 0, -1, False, CRC_EXTRA, out)
     return out[:, :count], end
+
+
+_MAGIC = (0xFD, 0xFE)  # MAVLink 2's and MAVLink 1's start bytes
+_HEADER = {0xFD: 10, 0xFE: 6}  # the header's length after each
+
+
+class Found(NamedTuple):
+    """What :func:`find_packets` found in bytes that may hold damage."""
+
+    index: np.ndarray  # the clean packets, as rows of the RecordIndex columns: (8, packets)
+    damaged: int  # stretches of bytes that were no clean packet, each skipped whole
+    skipped: int  # the bytes in them
+    end: int  # one past the last byte judged: the rest is a packet's start, cut off
+    # whether the last stretch of damage runs to the end (a byte stream's may go on)
+    ends_damaged: bool
+
+
+def find_packets(data: np.ndarray, whole: bool, after_damage: bool = False) -> Found:
+    """The clean packets (whole, a known message, CRC valid: :func:`_scan`'s test) in
+    ``data`` (uint8), resynchronising past anything else at the next start byte after
+    the one that failed, so that a false start (noise holding a start byte) costs only
+    itself, not the packets its made-up length would span.
+
+    ``whole``: nothing follows ``data`` (a datagram: a packet cut off at its end is
+    damage). Otherwise (a byte stream: TCP, serial) a packet's start cut off at the end
+    is left for the bytes to come: ``end`` says where it begins; and ``after_damage``
+    says that the bytes before ended in damage, which noise at the front goes on (one
+    stretch, counted once). An id this dialect does not know has no CRC to check it
+    by, so it is judged damage as soon as its header is in, without waiting for the
+    length it claims.
+    """
+    n = data.shape[0]
+    parts: list[np.ndarray] = []
+    damaged = skipped = 0
+    position = 0
+    ends_damaged = False
+    starts: np.ndarray | None = None  # where start bytes are, looked up on the first damage
+    while True:
+        out = np.empty((8, (n - position) // _SMALLEST_PACKET + 1), dtype=np.int64)
+        count, position, _ = _scan(data, position, -1, False, CRC_EXTRA, out)
+        if count:
+            parts.append(out[:, :count])
+            ends_damaged = False
+        if position >= n or (not whole and _cut_off(data, position)):
+            break
+        if starts is None:
+            starts = np.flatnonzero((data == _MAGIC[0]) | (data == _MAGIC[1]))
+        following = starts[np.searchsorted(starts, position, side="right") :]
+        resumed = int(following[0]) if following.shape[0] else n
+        if not (after_damage and position == 0 and data[0] not in _MAGIC):
+            damaged += 1
+        skipped += resumed - position
+        position = resumed
+        ends_damaged = resumed == n
+    index = np.concatenate(parts, axis=1) if len(parts) > 1 else parts[0] if parts else _NO_PACKETS
+    return Found(index, damaged, skipped, position, ends_damaged)
+
+
+_NO_PACKETS = np.zeros((8, 0), dtype=np.int64)
+
+
+def _cut_off(data: np.ndarray, position: int) -> bool:
+    """Whether a packet of a known message starts at ``position`` and runs past the end
+    of ``data`` (the rest of it may still come): the scanner stopped there for want of
+    bytes, not for damage."""
+    stx = int(data[position])
+    header = _HEADER.get(stx)
+    if header is None:
+        return False
+    n = data.shape[0]
+    if position + header > n:
+        return True
+    if stx == 0xFD:
+        message_id = int(data[position + 7]) | int(data[position + 8]) << 8
+        message_id |= int(data[position + 9]) << 16
+        signature = 13 if data[position + 2] & 1 else 0
+    else:
+        message_id, signature = int(data[position + 5]), 0
+    if message_id >= CRC_EXTRA.shape[0] or CRC_EXTRA[message_id] < 0:
+        return False
+    return position + header + int(data[position + 1]) + 2 + signature > n
 
 
 @inplace_exact_kernel

@@ -1,7 +1,7 @@
 """MAVLink links on asyncio: UDP in/out, TCP client/server, serial.
 
 Connection strings are the ones pymavlink and MAVProxy users know:
-``udpin:HOST:PORT`` (listen; replies go to whoever sent; ``udp:`` and a bare
+``udpin:HOST:PORT`` (listen; replies go to whoever sent MAVLink; ``udp:`` and a bare
 ``HOST:PORT`` mean the same, as in MAVProxy), ``udpout:HOST:PORT`` (send there;
 replies come back), ``udpbcast:ADDRESS:PORT`` (send to a broadcast address until
 a peer answers, then to that peer), ``tcp:HOST:PORT`` (connect, reconnecting with
@@ -11,8 +11,10 @@ serial device (``/dev/ttyUSB0``, ``/dev/ttyUSB0,57600`` as MAVProxy writes it,
 ``wsserver:``) are not taken.
 
 Every link hands received bytes, with the peer they came from, to one callback;
-the pipeline parses them (one parser per peer, so that byte streams from
-different peers never interleave inside a packet). Sending never blocks: a
+the pipeline finds the packets in them (a byte stream's per peer, so that streams
+from different peers never interleave inside a packet). A UDP sender becomes a
+peer, sent every reply, only once a datagram of its holds a MAVLink packet whose
+CRC checks. Sending never blocks: a
 link that cannot send right now (no peer yet, TCP reconnecting) drops the
 packet.
 """
@@ -30,11 +32,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
+from mavest.mavlink import framing
+
 log = logging.getLogger("mavest")
 
 Receiver = Callable[["Link", bytes, Any], None]
 
 UDP_PEER_TIMEOUT = 30.0  # s: a udpin peer silent this long gets no more replies
+# udpin peers gone silent remembered (to say when one is back): the latest this many
+SILENT_PEERS_KEPT = 256
 TCP_MIN_BACKOFF = 0.25  # s: the first wait before connecting again
 
 
@@ -158,9 +166,10 @@ class _DatagramProtocol(asyncio.DatagramProtocol):
 
 
 class UdpLink(Link):
-    """``udpin`` listens and replies to every peer heard from recently;
-    ``udpout`` sends to one address and listens for its replies; ``udpbcast`` sends to a
-    broadcast address until a peer answers, then to that peer only (as pymavlink)."""
+    """``udpin`` listens and replies to every peer heard from recently (a sender of
+    MAVLink: :func:`_holds_mavlink`); ``udpout`` sends to one address and listens for
+    its replies; ``udpbcast`` sends to a broadcast address until a peer answers with
+    MAVLink, then to that peer only (as pymavlink)."""
 
     def __init__(self, endpoint: Endpoint) -> None:
         super().__init__(endpoint)
@@ -204,10 +213,12 @@ class UdpLink(Link):
     def _on_datagram(self, data: bytes, addr: Any) -> None:
         if self.endpoint.kind == "udpin":
             now = time.monotonic()
-            if addr not in self._peers:
+            if addr in self._peers:
+                self._peers[addr] = now
+            elif _holds_mavlink(data):
                 self._on_new_peer(addr, now)
-            self._peers[addr] = now
-        elif self.endpoint.kind == "udpbcast" and not self._answered:
+                self._peers[addr] = now
+        elif self.endpoint.kind == "udpbcast" and not self._answered and _holds_mavlink(data):
             self._answered = True
             self._destination = addr
             log.info("%s: answered by %s; sending to it from now on", self.endpoint, _address(addr))
@@ -246,6 +257,8 @@ class UdpLink(Link):
             if now - seen > UDP_PEER_TIMEOUT:
                 del self._peers[addr]
                 self._silent[addr] = seen
+                if len(self._silent) > SILENT_PEERS_KEPT:  # the one silent longest is forgotten
+                    del self._silent[next(iter(self._silent))]
                 log.warning(
                     "%s: nothing from %s for %g s; no replies to it until it sends again",
                     self.endpoint,
@@ -258,6 +271,14 @@ class UdpLink(Link):
     def close(self) -> None:
         if self._transport is not None:
             self._transport.close()
+
+
+def _holds_mavlink(datagram: bytes) -> bool:
+    """Whether a datagram holds a MAVLink packet (whole, a known message, its CRC valid):
+    what makes its sender a peer. Noise from any address (a port scan, a flood from
+    spoofed addresses) must not: each peer is sent every reply and remembered."""
+    found = framing.find_packets(np.frombuffer(datagram, dtype=np.uint8), whole=True)
+    return found.index.shape[1] > 0
 
 
 def _address(addr: Any) -> str:

@@ -260,7 +260,8 @@ class Verifier:
         return self.bad_signatures + self.unsigned_dropped
 
     def parser(self) -> Any:
-        """A new parser (one per peer: byte streams never interleave inside a packet)."""
+        """A new decoder that checks signatures (the pipeline's one: its replay check
+        spans peers and links)."""
         return _CheckingParser(self)
 
     def _allow(self, parser: _CheckingParser, message_id: int) -> bool:

@@ -68,7 +68,7 @@ from mavest.estimator import Estimator
 from mavest.estimator.config import MAX_ANGULAR_RATE, MAX_SPECIFIC_FORCE
 from mavest.estimator.layout import StepFlags
 from mavest.evaluation.online import EulerComparison
-from mavest.mavlink import wire
+from mavest.mavlink import framing, wire
 from mavest.mavlink.clock import ClockEvent, StreamClock
 from mavest.mavlink.links import Link, UdpLink
 from mavest.mavlink.messages import (
@@ -301,7 +301,11 @@ class Pipeline:
         self.streams: dict[StreamKey, Stream] = {}
         self.vehicles: dict[tuple[int, int], Vehicle] = {}
         self._encoders: dict[int, Encoder] = {}
-        self._parsers: dict[tuple[int, Any], Any] = {}
+        # pymavlink's decoder of every packet found (one: it keeps no state of a peer's;
+        # with signing, the verifier's, whose replay check spans peers and links)
+        self._decoder = self.verifier.parser() if self.verifier is not None else MAVLink(None)
+        # a byte stream's packet cut off at the end of its last bytes, by (link, peer)
+        self._partial: dict[tuple[int, Any], bytes] = {}
         self.messages_in = 0
         self.bad_packets = 0
         self.sent = 0
@@ -327,61 +331,71 @@ class Pipeline:
     # ---------------------------------------------------------------- input
 
     def on_bytes(self, link: Link, data: bytes, peer: Any) -> None:
-        """Bytes from a link: parse (one parser per peer) and handle each message.
+        """Bytes from a link: find the packets, decode and handle each message.
 
         A UDP datagram of clean packets is decoded whole (:func:`wire.decode_datagram`:
-        the same messages, 0.7 of the CPU); anything else goes through pymavlink's
-        parser. With signing, the parsers check signatures (pymavlink, with the key); a
-        packet they drop comes out as BAD_DATA and is counted by the verifier, not as
-        damage.
+        the same messages, 0.7 of the CPU); anything else goes through :meth:`_parse`.
         """
         now = self.now_us()
         messages = None
         if self.verifier is None and isinstance(link, UdpLink):
             messages = wire.decode_datagram(data)
-        refused = 0  # packets the verifier refused, among the BAD_DATA below
         if messages is None:
-            parsed = self._parse(link, data, peer)
-            if parsed is None:
-                return
-            messages, refused = parsed
+            messages = self._parse(link, data, peer)
         for message in messages:
-            if message._type == "BAD_DATA":
-                if refused:
-                    refused -= 1
-                else:
-                    self.bad_packets += 1
-                continue
             if self.out_tlog is not None:
                 self.out_tlog.write(now, message.get_msgbuf())
             self.on_message(message, now)
 
-    def _parse(self, link: Link, data: bytes, peer: Any) -> tuple[list[Any], int] | None:
-        """pymavlink's messages of ``data`` and how many of them the verifier refused;
-        None if the parser gave up on the bytes (counted as damage)."""
+    def _parse(self, link: Link, data: bytes, peer: Any) -> list[Any]:
+        """The messages of the clean packets in ``data``, each decoded by pymavlink (which
+        checks the signature, with signing); what is not one is counted as damage and
+        skipped (:func:`framing.find_packets`: a false start costs only itself, and an id
+        the dialect does not know, having no CRC to check, is damage).
+
+        A packet never spans UDP datagrams; on a byte stream (TCP, serial) a packet cut off
+        at the end of what arrived is kept, per peer, for the bytes that follow.
+        """
+        streamed = not isinstance(link, UdpLink)
         key = (id(link), peer)
+        partial = self._partial.pop(key, None) if streamed else None
+        if partial:
+            data = partial + data
+        found = framing.find_packets(
+            np.frombuffer(data, dtype=np.uint8), whole=not streamed, after_damage=partial == b""
+        )
+        self.bad_packets += found.damaged
+        if found.end < len(data) or (streamed and found.ends_damaged):
+            # (empty: the bytes ended in noise, which the next ones may go on)
+            self._keep_partial(key, data[found.end :])
+        messages = []
+        for start, end in found.index[:2].T.tolist():
+            message = self._decode(data[start:end])
+            if message is not None:
+                messages.append(message)
+        return messages
+
+    def _keep_partial(self, key: tuple[int, Any], partial: bytes) -> None:
+        """Keep a peer's packet cut off at the end of its bytes (at most one packet long;
+        empty: they ended in damage) until its next bytes; of more peers than
+        :data:`PARTIAL_PEERS` (TCP clients come and go), the one heard from longest ago
+        loses its partial packet, as damage."""
+        partials = self._partial
+        partials[key] = partial  # (last in the dict's order: popped on each use)
+        if len(partials) > PARTIAL_PEERS and partials.pop(next(iter(partials))):
+            self.bad_packets += 1
+
+    def _decode(self, packet: bytes) -> Any | None:
+        """pymavlink's message of one clean packet; None if it refused it: a signature the
+        verifier refused (counted there), else damage (counted here)."""
         verifier = self.verifier
-        parser = self._parsers.get(key)
-        if parser is None:
-            if verifier is not None:
-                parser = verifier.parser()
-            else:
-                parser = MAVLink(None)
-                parser.robust_parsing = True
-            self._parsers[key] = parser
-        dropped_before = verifier.dropped if verifier is not None else 0
+        refused_before = verifier.dropped if verifier is not None else 0
         try:
-            messages = parser.parse_buffer(data) or []
-        except Exception:  # pymavlink raises on some malformed input even when robust
-            self.bad_packets += 1
+            return self._decoder.decode(bytearray(packet))
+        except Exception:  # pymavlink's MAVError
+            if verifier is None or verifier.dropped == refused_before:
+                self.bad_packets += 1
             return None
-        if parser.buf_len() and isinstance(link, UdpLink):
-            # A packet never spans datagrams: what is left is the start of one cut off
-            # (or noise). Kept, it would swallow the packets of the next datagram.
-            _discard_partial_packet(parser)
-            self.bad_packets += 1
-        refused = verifier.dropped - dropped_before if verifier is not None else 0
-        return messages, refused
 
     def on_message(self, message: Any, timestamp_us: int) -> None:
         """One decoded message; ``timestamp_us`` is its record time (for files written)."""
@@ -942,6 +956,10 @@ class Pipeline:
 # How many times a vehicle is asked for its IMU message's rate before mavest gives up.
 INTERVAL_REQUESTS = 5
 
+# How many byte streams' cut-off packets are kept at once (one per TCP client or serial
+# device that has one: a tcpin server's clients are many only when they come and go).
+PARTIAL_PEERS = 64
+
 _IMU_NAMES = frozenset(IMU_MESSAGES)
 
 # Requests a MAVLink component answers when they are addressed to it.
@@ -1211,13 +1229,6 @@ def report_heading(stream: Stream, flags: int) -> None:
         log.info("%s: magnetometer rejected too long: trusting it again", stream.key)
     if flags & StepFlags.MAG_REFERENCE_CHANGED:
         log.info("%s: a steady new magnetic field became the reference", stream.key)
-
-
-def _discard_partial_packet(parser: Any) -> None:
-    """Empty a pymavlink parser's buffer, as it is when it starts (it has no method for it)."""
-    parser.buf = bytearray()
-    parser.buf_index = 0
-    parser.expected_length = mavlink2.HEADER_LEN_V1 + 2
 
 
 def _rejection_reason(sample: ImuSample) -> str:
