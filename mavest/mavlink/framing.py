@@ -32,10 +32,11 @@ from typing import Any, NamedTuple
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from mavest._jit import inplace_exact_kernel
+from mavest._jit import inplace_exact_kernel, inplace_inlined_kernel
 
 _MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as TlogReader (and pymavlink)
 _SMALLEST_PACKET = 8  # bytes: MAVLink 1's header and CRC around an empty payload
+STX_V2, STX_V1 = 0xFD, 0xFE  # MAVLink 2's and MAVLink 1's start bytes
 
 # CRC extra byte per message id; -1 for ids this dialect does not define.
 CRC_EXTRA = np.full(max(mavlink2.mavlink_map) + 1, -1, dtype=np.int16)
@@ -125,6 +126,30 @@ def crc_register(data: np.ndarray, start: int, stop: int, crc: int) -> int:
     return crc
 
 
+@inplace_inlined_kernel
+def _header_at(data: np.ndarray, p: int) -> tuple[int, int, int, int, int, int]:
+    """The header of the packet starting at ``p`` (``p`` < len(data)): its length, the
+    payload's, the signature's, the message id, system and component. Its length is 0
+    when no start byte is at ``p``, −1 when the header runs past the end of ``data``."""
+    n = data.shape[0]
+    stx = data[p]
+    if stx == STX_V2:
+        if p + 10 > n:
+            return -1, 0, 0, 0, 0, 0
+        message_id = (
+            np.int64(data[p + 7]) | (np.int64(data[p + 8]) << 8) | (np.int64(data[p + 9]) << 16)
+        )
+        signature = 13 if data[p + 2] & 1 else 0
+        system, component = np.int64(data[p + 5]), np.int64(data[p + 6])
+        return 10, np.int64(data[p + 1]), signature, message_id, system, component
+    if stx == STX_V1:
+        if p + 6 > n:
+            return -1, 0, 0, 0, 0, 0
+        system, component = np.int64(data[p + 3]), np.int64(data[p + 4])
+        return 6, np.int64(data[p + 1]), 0, np.int64(data[p + 5]), system, component
+    return 0, 0, 0, 0, 0, 0
+
+
 @inplace_exact_kernel
 def _scan(
     data: np.ndarray,
@@ -155,28 +180,8 @@ def _scan(
             if last_us >= 0 and abs(stamp - last_us) > _MAX_TIMESTAMP_JUMP_US:
                 break
         p = position + prefix
-        stx = data[p]
-        if stx == 0xFD:
-            if p + 10 > n:
-                break
-            length = np.int64(data[p + 1])
-            signature = 13 if data[p + 2] & 1 else 0
-            header = 10
-            message_id = (
-                np.int64(data[p + 7]) | (np.int64(data[p + 8]) << 8) | (np.int64(data[p + 9]) << 16)
-            )
-            system = np.int64(data[p + 5])
-            component = np.int64(data[p + 6])
-        elif stx == 0xFE:
-            if p + 6 > n:
-                break
-            length = np.int64(data[p + 1])
-            signature = 0
-            header = 6
-            message_id = np.int64(data[p + 5])
-            system = np.int64(data[p + 3])
-            component = np.int64(data[p + 4])
-        else:
+        header, length, signature, message_id, system, component = _header_at(data, p)
+        if header <= 0:
             break
         end = p + header + length + 2 + signature
         if end > n or message_id >= crc_extra.shape[0] or crc_extra[message_id] < 0:
@@ -215,10 +220,6 @@ def scan_packets(data: np.ndarray) -> tuple[np.ndarray, int]:
     out = np.empty((8, data.shape[0] // _SMALLEST_PACKET + 1), dtype=np.int64)
     count, end, _ = _scan(data, 0, -1, False, CRC_EXTRA, out)
     return out[:, :count], end
-
-
-_MAGIC = (0xFD, 0xFE)  # MAVLink 2's and MAVLink 1's start bytes
-_HEADER = {0xFD: 10, 0xFE: 6}  # the header's length after each
 
 
 class Found(NamedTuple):
@@ -261,10 +262,10 @@ def find_packets(data: np.ndarray, whole: bool, after_damage: bool = False) -> F
         if position >= n or (not whole and _cut_off(data, position)):
             break
         if starts is None:
-            starts = np.flatnonzero((data == _MAGIC[0]) | (data == _MAGIC[1]))
+            starts = np.flatnonzero((data == STX_V2) | (data == STX_V1))
         following = starts[np.searchsorted(starts, position, side="right") :]
         resumed = int(following[0]) if following.shape[0] else n
-        if not (after_damage and position == 0 and data[0] not in _MAGIC):
+        if not (after_damage and position == 0 and data[0] not in (STX_V2, STX_V1)):
             damaged += 1
         skipped += resumed - position
         position = resumed
@@ -280,22 +281,12 @@ def _cut_off(data: np.ndarray, position: int) -> bool:
     """Whether a packet of a known message starts at ``position`` and runs past the end
     of ``data`` (the rest of it may still come): the scanner stopped there for want of
     bytes, not for damage."""
-    stx = int(data[position])
-    header = _HEADER.get(stx)
-    if header is None:
-        return False
-    n = data.shape[0]
-    if position + header > n:
-        return True
-    if stx == 0xFD:
-        message_id = int(data[position + 7]) | int(data[position + 8]) << 8
-        message_id |= int(data[position + 9]) << 16
-        signature = 13 if data[position + 2] & 1 else 0
-    else:
-        message_id, signature = int(data[position + 5]), 0
+    header, length, signature, message_id, _, _ = _header_at(data, position)
+    if header <= 0:
+        return header < 0  # (a start byte whose header is cut off)
     if message_id >= CRC_EXTRA.shape[0] or CRC_EXTRA[message_id] < 0:
         return False
-    return position + header + int(data[position + 1]) + 2 + signature > n
+    return position + header + length + 2 + signature > data.shape[0]
 
 
 @inplace_exact_kernel
