@@ -286,20 +286,25 @@ def test_a_table_that_cannot_take_the_smoothed_columns_keeps_the_online_ones(
     assert f"cannot add the smoothed columns to {table}: No space left on device" in caplog.text
 
 
+async def _smoothed_replay(flight: Path, estimates: Path, stop: asyncio.Event) -> RunReport:
+    """``replay --smooth --estimates ESTIMATES`` of the flight, stopped by ``stop``."""
+    return await replay(
+        flight,
+        ServiceConfig(),
+        Outputs(estimates=estimates),
+        progress=False,
+        stop=stop,
+        smooth=True,
+    )
+
+
 def test_an_interrupted_replay_is_not_smoothed_and_says_so(
     flight: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     async def stopped() -> RunReport:
         stop = asyncio.Event()
         stop.set()  # Ctrl-C at once: the replay ends after its first stretch
-        return await replay(
-            flight,
-            ServiceConfig(),
-            Outputs(estimates=tmp_path / "e.csv"),
-            progress=False,
-            stop=stop,
-            smooth=True,
-        )
+        return await _smoothed_replay(flight, tmp_path / "e.csv", stop)
 
     report = asyncio.run(stopped())
     assert report.interrupted and not report.smoothed
@@ -330,14 +335,7 @@ def test_a_stop_while_smoothing_ends_the_replay_as_an_interrupted_one(
             return smoothed
 
         monkeypatch.setattr(runners, "smooth_stream", slow_smoothing)
-        report = await replay(
-            flight,
-            ServiceConfig(),
-            Outputs(estimates=tmp_path / "e.csv"),
-            progress=False,
-            stop=stop,
-            smooth=True,
-        )
+        report = await _smoothed_replay(flight, tmp_path / "e.csv", stop)
         return report, time.perf_counter() - asked[0]
 
     try:

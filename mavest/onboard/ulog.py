@@ -146,7 +146,7 @@ def _magnetometers(build: _Builder, topics: dict[str, Any]) -> dict[int, Series]
     a field (one whose format lacks it is left out, with a note, for the next)."""
     for read in (_vehicle_magnetometer, _combined_magnetometer, _sensor_mag):
         found = build.attempt(read, build, topics)
-        if found is not None and found:
+        if found:  # (None: left out, with a note; empty: no such topic)
             return found
     return {}
 
