@@ -36,7 +36,8 @@ from mavest._jit import inplace_exact_kernel, inplace_inlined_kernel
 
 _MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as TlogReader (and pymavlink)
 _SMALLEST_PACKET = 8  # bytes: MAVLink 1's header and CRC around an empty payload
-STX_V2, STX_V1 = 0xFD, 0xFE  # MAVLink 2's and MAVLink 1's start bytes
+# MAVLink 2's and MAVLink 1's start bytes
+STX_V2, STX_V1 = mavlink2.PROTOCOL_MARKER_V2, mavlink2.PROTOCOL_MARKER_V1
 
 # CRC extra byte per message id; -1 for ids this dialect does not define.
 CRC_EXTRA = np.full(max(mavlink2.mavlink_map) + 1, -1, dtype=np.int16)

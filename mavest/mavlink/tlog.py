@@ -34,8 +34,6 @@ from mavest import timeline
 from mavest.mavlink import framing
 from mavest.mavlink.messages import MAVLink, mavlink2
 
-_STX_V1 = 0xFE
-_STX_V2 = 0xFD
 _TIMESTAMP = struct.Struct(">Q")
 _MAX_TIMESTAMP_JUMP_US = 3 * 24 * 3600 * 10**6  # as pymavlink: beyond this, confirm a time
 # Where a tlog's first record is looked for. In the first bytes one timestamped packet
@@ -52,7 +50,7 @@ class TlogError(Exception):
 
 def message_id_of(packet: bytes | memoryview) -> int:
     """The message id in a MAVLink 1 or 2 packet's header."""
-    if packet[0] == _STX_V2:
+    if packet[0] == framing.STX_V2:
         return packet[7] | (packet[8] << 8) | (packet[9] << 16)
     return packet[5]
 
@@ -64,12 +62,12 @@ def message_ids(names: tuple[str, ...] | list[str] | set[str]) -> frozenset[int]
 def _packet_length(buffer: bytes | memoryview | mmap.mmap, start: int) -> int:
     """Length of the packet at ``start`` from its header, or 0 if no packet starts there."""
     stx = buffer[start]
-    if stx == _STX_V2:
+    if stx == framing.STX_V2:
         if start + 3 > len(buffer):
             return -1
         signed = buffer[start + 2] & 0x01
         return 12 + buffer[start + 1] + (13 if signed else 0)
-    if stx == _STX_V1:
+    if stx == framing.STX_V1:
         if start + 2 > len(buffer):
             return -1
         return 8 + buffer[start + 1]
@@ -81,7 +79,7 @@ def _record_starts(data: bytes | mmap.mmap, position: int, last_us: int) -> bool
     the previous one, then a MAVLink start byte."""
     if position == len(data):
         return True
-    if position + 9 > len(data) or data[position + 8] not in (_STX_V1, _STX_V2):
+    if position + 9 > len(data) or data[position + 8] not in (framing.STX_V1, framing.STX_V2):
         return False
     (stamp,) = _TIMESTAMP.unpack_from(data, position)
     return abs(stamp - last_us) <= _MAX_TIMESTAMP_JUMP_US
@@ -195,7 +193,7 @@ class TlogReader:
         if stop <= _PROBE_BYTES:
             return None
         window = array[_PROBE_BYTES : stop + 8]
-        starts = (window[8:] == _STX_V1) | (window[8:] == _STX_V2)
+        starts = (window[8:] == framing.STX_V1) | (window[8:] == framing.STX_V2)
         starts &= window[:-8] < 0x80  # a time in 63 bits, as framing.scan reads one
         for offset in np.flatnonzero(starts):
             if self._timeline_starts(_PROBE_BYTES + int(offset)):
@@ -220,7 +218,7 @@ class TlogReader:
     def _packet_at(self, data: bytes, start: int) -> bool:
         """True when a whole packet of a known message, CRC valid, starts at ``start``
         (an id the dialect does not know has no CRC to check: noise passes it)."""
-        if start >= len(data) or data[start] not in (_STX_V1, _STX_V2):
+        if start >= len(data) or data[start] not in (framing.STX_V1, framing.STX_V2):
             return False
         length = _packet_length(data, start)
         if length <= 0 or start + length > len(data):
@@ -237,8 +235,8 @@ class TlogReader:
         n = len(data)
         position = start + 1
         while position + 9 <= n:
-            found = data.find(bytes([_STX_V2]), position + 8)
-            found_v1 = data.find(bytes([_STX_V1]), position + 8)
+            found = data.find(bytes([framing.STX_V2]), position + 8)
+            found_v1 = data.find(bytes([framing.STX_V1]), position + 8)
             candidates = [c for c in (found, found_v1) if c >= 0]
             if not candidates:
                 return n
