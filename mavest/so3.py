@@ -45,8 +45,13 @@ def sinc(theta: float) -> float:
 @kernel
 def _coefficient_b(theta: float) -> float:
     """(1 − cos θ)/θ², written as ½ sinc²(θ/2) to avoid cancellation."""
-    s = sinc(0.5 * theta)
-    return 0.5 * s * s
+    return _coefficient_b_of_half_sinc(sinc(0.5 * theta))
+
+
+@kernel
+def _coefficient_b_of_half_sinc(half_sinc: float) -> float:
+    """:func:`_coefficient_b` from sinc(θ/2)."""
+    return 0.5 * half_sinc * half_sinc
 
 
 @kernel
@@ -187,6 +192,20 @@ def left_jacobian_into(phi: np.ndarray, out: np.ndarray) -> None:
 
 
 @kernel
+def quat_exp_and_jacobian_into(
+    phi: np.ndarray, q_out: np.ndarray, jacobian_out: np.ndarray, left: bool
+) -> None:
+    """:func:`quat_exp_into` and :func:`left_jacobian_into` (``left``) or
+    :func:`right_jacobian_into` of one φ, bit for bit, in one: a prediction needs both,
+    and they share θ and sinc(θ/2) (a sine and a square root fewer a sample)."""
+    theta = _norm3(phi)
+    half_sinc = sinc(0.5 * theta)
+    _quat_exp_components_into(phi, theta, half_sinc, q_out)
+    b = _coefficient_b_of_half_sinc(half_sinc)
+    skew_polynomial_into(phi, b if left else -b, _coefficient_c(theta), jacobian_out)
+
+
+@kernel
 def left_jacobian(phi: np.ndarray) -> np.ndarray:
     out = np.empty((3, 3))
     left_jacobian_into(phi, out)
@@ -319,7 +338,15 @@ def quat_normalize_into(q: np.ndarray) -> None:
 def quat_exp_into(phi: np.ndarray, out: np.ndarray) -> None:
     """The unit quaternion of the rotation vector φ: (cos θ/2, sin(θ/2)/θ · φ)."""
     theta = _norm3(phi)
-    k = 0.5 * sinc(0.5 * theta)
+    _quat_exp_components_into(phi, theta, sinc(0.5 * theta), out)
+
+
+@kernel
+def _quat_exp_components_into(
+    phi: np.ndarray, theta: float, half_sinc: float, out: np.ndarray
+) -> None:
+    """:func:`quat_exp_into` given θ = ‖φ‖ and sinc(θ/2)."""
+    k = 0.5 * half_sinc
     out[0] = math.cos(0.5 * theta)
     out[1] = k * phi[0]
     out[2] = k * phi[1]

@@ -178,6 +178,20 @@ def test_inverse_jacobians_invert_up_to_pi(phi: np.ndarray) -> None:
     )
 
 
+@pytest.mark.parametrize("scale", [0.0, 1e-5, 1e-3, so3.SERIES_ANGLE, 0.5, 3.0])
+@given(phi=rotation_vectors())
+def test_quat_exp_and_jacobian_in_one_are_the_separate_ones_bit_for_bit(
+    scale: float, phi: np.ndarray
+) -> None:
+    # the prediction's shared form must not move an estimate: the same bits, not merely close
+    phi = phi * (scale / max(np.linalg.norm(phi), 1e-300)) if scale else 0.0 * phi
+    for left, jacobian in ((True, so3.left_jacobian), (False, so3.right_jacobian)):
+        q, J = np.empty(4), np.empty((3, 3))
+        so3.quat_exp_and_jacobian_into(phi, q, J, left)
+        assert np.array_equal(q, so3.quat_exp(phi))
+        assert np.array_equal(J, jacobian(phi))
+
+
 @pytest.mark.parametrize(
     "jacobian",
     [so3.right_jacobian, so3.left_jacobian, so3.right_jacobian_inverse, so3.left_jacobian_inverse],

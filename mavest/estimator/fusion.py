@@ -72,13 +72,12 @@ def _predicted_attitude(
     for i in range(3):
         phi[i] = (gyro[i] - bias[i]) * dt
     turn = work[1]
-    so3.quat_exp_into(phi, turn)
+    J = work[5:8, :3]
+    so3.quat_exp_and_jacobian_into(phi, turn, J, True)
     so3.quat_multiply_into(q, turn, q_out)
     so3.quat_normalize_into(q_out)
     R = work[2:5, :3]
-    J = work[5:8, :3]
     so3.matrix_from_quat_into(q, R)
-    so3.left_jacobian_into(phi, J)
     G = work[8:11, :3]
     for i in range(3):
         for j in range(3):

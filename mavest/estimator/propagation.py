@@ -150,20 +150,20 @@ def _predict_linear(s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, dt:
     so3.matrix_from_quat_into(s.q, R)
     _process_noise_rotation(s, c, phi)  # w_propagation_n33: also Φ_θθ = Exp(−φ) (right error)
     F = s.w_propagation_m33  # Φ_θb
+    turn = s.w_propagation_q4  # Exp(φ)
     if c.error == ERROR_LEFT:
         J = s.w_propagation_T  # J_l(φ), in its 3×3 corner
-        so3.left_jacobian_into(phi, J[:3, :3])
+        so3.quat_exp_and_jacobian_into(phi, turn, J[:3, :3], True)
         for i in range(3):
             for j in range(3):
                 F[i, j] = -dt * (R[i, 0] * J[0, j] + R[i, 1] * J[1, j] + R[i, 2] * J[2, j])
     else:
-        so3.right_jacobian_into(phi, F)
+        so3.quat_exp_and_jacobian_into(phi, turn, F, False)
         for i in range(3):
             for j in range(3):
                 F[i, j] *= -dt
-    so3.quat_exp_into(phi, s.w_propagation_q4)
     copy_into(s.w_propagation_p4, s.q)
-    so3.quat_multiply_into(s.w_propagation_p4, s.w_propagation_q4, s.q)
+    so3.quat_multiply_into(s.w_propagation_p4, turn, s.q)
     so3.quat_normalize_into(s.q)
     G = s.w_propagation_G  # ε x, y rows of Φ: G Φ_θb, with G = g E W after the step
     if c.n_state > N_ERROR:
