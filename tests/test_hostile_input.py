@@ -478,17 +478,21 @@ def _pymavlink_imu(path: Path) -> Counter[bytes]:
 
 _STREAM = re.compile(r"^  \S+\[\d+\] from \d+/\d+( → ATTITUDE)?: (\d+) of (\d+) samples", re.M)
 _PROBLEM = re.compile(
-    r"(\d+) (rejected|duplicates|out of order|off the timeline|gaps|"
-    r"re-aligned|reboots|wraps)"
+    r"(\d+) (rejected|duplicates?|out of order|off the timeline|gaps?|"
+    r"re-aligned|reboots?|wraps?)\b"
 )
 _SUMMARY_NAMES = {
     "rejected": "rejected",
+    "duplicate": "duplicates",
     "duplicates": "duplicates",
     "out of order": "out_of_order",
     "off the timeline": "off_timeline",
+    "gap": "gaps",
     "gaps": "gaps",
     "re-aligned": "realigned",
+    "reboot": "reboots",
     "reboots": "reboots",
+    "wrap": "wraps",
     "wraps": "wraps",
 }
 _MAG = re.compile(
@@ -514,6 +518,9 @@ def _replayed(summary: str, log: str, out_tlog: Path) -> Outcome:
     counters = dict.fromkeys(COUNTERS, 0)
     for value, name in _PROBLEM.findall(block):
         counters[_SUMMARY_NAMES[name]] = int(value)
+        # one of a thing reads as one ("1 reboot"), more as more
+        if name.rstrip("s") in ("duplicate", "gap", "reboot", "wrap"):
+            assert (int(value) == 1) == (not name.endswith("s")), block
     mag = _MAG.search(summary)
     return Outcome(
         _pymavlink_imu(out_tlog),

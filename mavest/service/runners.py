@@ -906,8 +906,13 @@ def _status(pipeline: Pipeline) -> None:
 
 
 def _counted(counts: tuple[tuple[str, int], ...]) -> list[str]:
-    """ "N name" for each count that is not zero."""
-    return [f"{value} {name}" for name, value in counts if value]
+    """ "N name" for each count that is not zero; a name "one/many" takes its number's."""
+    out = []
+    for name, value in counts:
+        if value:
+            one, _, many = name.partition("/")
+            out.append(f"{value} {one if value == 1 or not many else many}")
+    return out
 
 
 def format_summary(report: RunReport) -> str:
@@ -954,13 +959,13 @@ def format_summary(report: RunReport) -> str:
         problems = _counted(
             (
                 ("rejected", stats.rejected),
-                ("duplicates", stats.duplicates),
+                ("duplicate/duplicates", stats.duplicates),
                 ("out of order", stats.out_of_order),
                 ("off the timeline", stats.off_timeline),
-                ("gaps", stats.gaps),
+                ("gap/gaps", stats.gaps),
                 ("re-aligned", stats.realigned),
-                ("reboots", stats.reboots),
-                ("wraps", stats.wraps),
+                ("reboot/reboots", stats.reboots),
+                ("wrap/wraps", stats.wraps),
             )
         )
         lines.append("    " + (", ".join(problems) if problems else "no gaps, nothing rejected"))
