@@ -185,6 +185,7 @@ def test_noise_from_many_addresses_leaves_nothing_behind() -> None:
     finally:
         tracemalloc.stop()
     assert pipeline.bad_packets == 3001
+    assert pipeline.skipped_bytes == 3001 * len(NOISE)
     assert grown < 100_000, f"{grown} bytes kept for 3000 senders of noise"
 
 
@@ -217,6 +218,7 @@ def test_the_live_service_answers_its_vehicle_on_time_after_noise_from_many_port
     answered = {m.time_boot_ms for m in _replies(bytes(heard)) if m.get_type() == "ATTITUDE"}
     assert len(answered) >= samples - 2, f"{len(answered)} of {samples} answered"
     assert report.pipeline.bad_packets == 500
+    assert report.skipped_bytes == 500 * len(NOISE)  # what the summary says
     for sock in listening:
         assert _received(sock) == b"", "a sender of noise was answered"
         sock.close()
@@ -244,6 +246,7 @@ def test_a_false_start_on_tcp_costs_only_its_noise() -> None:
     assert stream.stats.estimated == 300
     assert pipeline.messages_in == 300, "noise was taken for messages"
     assert pipeline.bad_packets == false_starts == 30
+    assert report.skipped_bytes == 30 * false_starts
 
 
 def test_packets_cut_anywhere_on_a_byte_stream_are_all_found() -> None:
@@ -258,6 +261,7 @@ def test_packets_cut_anywhere_on_a_byte_stream_are_all_found() -> None:
         offset += size
     assert pipeline.messages_in == 200
     assert pipeline.bad_packets == false_starts
+    assert pipeline.skipped_bytes == 30 * false_starts
 
 
 def test_the_cut_off_packets_kept_are_the_latest_peers(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -268,6 +272,7 @@ def test_the_cut_off_packets_kept_are_the_latest_peers(monkeypatch: pytest.Monke
     for peer in ("first", "second", "third"):
         pipeline.on_bytes(link, packet[:20], peer)
     assert pipeline.bad_packets == 1  # the first's start, dropped for the third's
+    assert pipeline.skipped_bytes == 20
     for peer in ("third", "second", "first"):
         pipeline.on_bytes(link, packet[20:], peer)
     assert pipeline.messages_in == 2

@@ -308,6 +308,7 @@ class Pipeline:
         self._partial: dict[tuple[int, Any], bytes] = {}
         self.messages_in = 0
         self.bad_packets = 0
+        self.skipped_bytes = 0  # of the bad packets and the noise between packets
         self.sent = 0
         # The record time (µs) of what is written now: packets of ours in the output
         # tlog, estimates and references to the sinks. The last message's
@@ -365,6 +366,7 @@ class Pipeline:
             np.frombuffer(data, dtype=np.uint8), whole=not streamed, after_damage=partial == b""
         )
         self.bad_packets += found.damaged
+        self.skipped_bytes += found.skipped
         if found.end < len(data) or (streamed and found.ends_damaged):
             # (empty: the bytes ended in noise, which the next ones may go on)
             self._keep_partial(key, data[found.end :])
@@ -382,8 +384,11 @@ class Pipeline:
         loses its partial packet, as damage."""
         partials = self._partial
         partials[key] = partial  # (last in the dict's order: popped on each use)
-        if len(partials) > PARTIAL_PEERS and partials.pop(next(iter(partials))):
-            self.bad_packets += 1
+        if len(partials) > PARTIAL_PEERS:
+            dropped = partials.pop(next(iter(partials)))
+            if dropped:
+                self.bad_packets += 1
+                self.skipped_bytes += len(dropped)
 
     def _decode(self, packet: bytes) -> Any | None:
         """pymavlink's message of one clean packet; None if it refused it: a signature the
@@ -395,6 +400,7 @@ class Pipeline:
         except Exception:  # pymavlink's MAVError
             if verifier is None or verifier.dropped == refused_before:
                 self.bad_packets += 1
+                self.skipped_bytes += len(packet)
             return None
 
     def on_message(self, message: Any, timestamp_us: int) -> None:

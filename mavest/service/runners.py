@@ -728,6 +728,7 @@ async def run_live(
     report.elapsed = time.perf_counter() - start
     report.records = pipeline.messages_in
     report.bad_records = pipeline.bad_packets
+    report.skipped_bytes = pipeline.skipped_bytes
     return report
 
 
