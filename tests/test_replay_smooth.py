@@ -29,6 +29,7 @@ import mavest.service.estimates_table as estimates_table
 import mavest.service.runners as runners
 import mavest.service.smoothing as smoothing
 from mavest.cli import main
+from mavest.estimator import InputError
 from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
 from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import COLUMNS, SMOOTHED_COLUMNS
@@ -162,6 +163,51 @@ def test_a_reboot_starts_a_segment_and_rejected_samples_are_not_inputs(
     for online, smoothed in ONLINE.items():
         np.testing.assert_array_equal(columns[smoothed], columns[online], err_msg=online)
     assert report.smoothed[stream.key].vs_truth == stream.vs_truth.result()
+
+
+def test_a_timeline_the_smoother_refuses_is_left_out_not_the_stream(
+    flights: dict[str, Any],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A reboot whose timeline nothing can start the filter on (say, the vehicle carried
+    off) costs the smoothing of that timeline only: NaN there, the one before smoothed
+    and scored, one line to say so."""
+    flavour, make = CASES["reboot"]
+    path = tmp_path / "damaged.tlog"
+    path.write_bytes(_tlog_bytes(make(flights[flavour]).chunks))
+    segments: list[int] = []
+
+    def refuse_the_second(t: np.ndarray, *args: Any) -> Any:
+        segments.append(t.shape[0])
+        if len(segments) == 2:
+            raise InputError("nothing estimated")
+        return mavest.estimate(t, *args)
+
+    monkeypatch.setattr(smoothing, "smooth", refuse_the_second)
+    monkeypatch.setattr(smoothing, "measured_interval_acceleration", lambda a: a)
+    table, rrd = tmp_path / "estimates.csv", tmp_path / "run.rrd"
+    config = ServiceConfig().replace(input={"settle_time": 1.0})  # (scored from 1 s on)
+    report = asyncio.run(
+        replay(path, config, Outputs(estimates=table, rrd=rrd), progress=False, smooth=True)
+    )
+    (stream,) = report.streams
+    first, second = segments
+    assert first + second == stream.stats.estimated
+    columns = _read(table)
+    for online, smoothed in ONLINE.items():
+        np.testing.assert_array_equal(columns[smoothed][:first], columns[online][:first])
+        assert np.all(np.isnan(columns[smoothed][first:])), smoothed
+    smoothed_stream = report.smoothed[stream.key]
+    assert smoothed_stream.refused == second
+    score = smoothed_stream.vs_truth
+    assert score is not None and 0 < score.count < stream.vs_truth.result().count
+    assert all(math.isfinite(v) for v in (score.roll_rms, score.pitch_rms, score.yaw_rms))
+    assert f"smoothed: {first} of {first + second} samples" in runners.format_summary(report)
+    refused = [r.getMessage() for r in caplog.records if "not smoothed" in r.getMessage()]
+    assert len(refused) == 1 and f"samples {first + 1}–{first + second}" in refused[0]
+    assert rrd.stat().st_size > 0
 
 
 def test_both_paths_give_the_same_smoothed_table(flight: Path, tmp_path: Path) -> None:

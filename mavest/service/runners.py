@@ -1033,7 +1033,12 @@ def format_summary(report: RunReport) -> str:
                     described = scored.describe(stream.estimator.heading_referenced)
                     lines.append(f"    {who}vs {name} after {settle:g} s: {described}")
         if smoothed is not None:
-            lines.append(f"    smoothed: {len(smoothed)} samples, given the whole log")
+            count = (
+                f"{len(smoothed) - smoothed.refused} of {len(smoothed)}"
+                if smoothed.refused
+                else f"{len(smoothed)}"
+            )
+            lines.append(f"    smoothed: {count} samples, given the whole log")
     if report.smoothing_skipped:
         lines.append(f"  {report.smoothing_skipped}")
     if pipeline.ignored_imu:

@@ -250,6 +250,9 @@ def _score(
         np.concatenate([2 * np.arange(start, end) + 1, 2 * place[first:last].astype(np.int64)]),
         kind="stable",
     )
+    # (a timeline the smoother refused is NaN: no estimate there to compare)
+    estimated = np.concatenate([np.all(np.isfinite(euler[start:end]), axis=1), np.ones(m, bool)])
+    order = order[estimated[order]]
     comparison.add_many(
         kinds[order],
         np.concatenate([t[start:end], times[first:last]])[order],
@@ -271,6 +274,7 @@ class SmoothedStream:
     # stream had no such comparison)
     vs_truth: ComparisonResult | None = None
     vs_autopilot: ComparisonResult | None = None
+    refused: int = 0  # samples of the timelines the smoother refused (NaN)
 
     def __len__(self) -> int:
         return self.t.shape[0]
@@ -305,8 +309,9 @@ def measured_interval_acceleration(linear_accel: np.ndarray) -> np.ndarray:
 
 
 def smooth_stream(stream: Stream) -> SmoothedStream | None:
-    """A stream's recorded inputs smoothed, a segment per timeline (None, said in one
-    line, if the smoother refuses them); its comparisons made again with the result."""
+    """A stream's recorded inputs smoothed, a segment per timeline; its comparisons made
+    again with the result. A segment the smoother refuses (nothing in it could start the
+    filter) is NaN, said in one line; None if it refuses every one."""
     inputs = stream.inputs
     if inputs is None or not len(inputs):
         return None
@@ -318,14 +323,21 @@ def smooth_stream(stream: Stream) -> SmoothedStream | None:
     t, gyro, accel, mag, linear_accel = inputs.take()
     linear_accel = measured_interval_acceleration(linear_accel)
     n = t.shape[0]
-    q, euler, sigma, bias, bias_sigma = np.empty((n, 4)), *(np.empty((n, 3)) for _ in range(4))
+    q, euler, sigma, bias, bias_sigma = (np.full((n, k), math.nan) for k in (4, 3, 3, 3, 3))
+    refused = 0
     for first, end in zip(segments, [*segments[1:], n], strict=True):
         part = slice(first, end)
         try:
             series = smooth(t[part], gyro[part], accel[part], mag[part], config, linear_accel[part])
         except InputError as error:
-            log.warning("%s: not smoothed: %s", stream.key, error)
-            return None
+            where = (
+                f" (samples {first + 1}–{end} of {n}, the timeline after a reboot)"
+                if len(segments) > 1
+                else ""
+            )
+            log.warning("%s: not smoothed%s: %s", stream.key, where, error)
+            refused += end - first
+            continue
         q[part] = series.q
         euler[part] = series.euler
         sigma[part] = so3.euler_sigmas(series.q, series.cov[:, :3, :3], config.error)
@@ -333,7 +345,9 @@ def smooth_stream(stream: Stream) -> SmoothedStream | None:
         bias_variance = np.diagonal(series.cov[:, 3:, 3:], axis1=1, axis2=2)
         bias_sigma[part] = np.sqrt(np.maximum(bias_variance, 0.0))
         del series  # (its covariances: 288 bytes a sample)
-    smoothed = SmoothedStream(t, q, euler, sigma, bias, bias_sigma)
+    if refused == n:
+        return None
+    smoothed = SmoothedStream(t, q, euler, sigma, bias, bias_sigma, refused=refused)
     for name in ("vs_truth", "vs_autopilot"):
         comparison = getattr(stream, name)
         if isinstance(comparison, RecordedComparison):
