@@ -7,6 +7,7 @@ per-sample reference written with scipy (tests/reference.py's charts).
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -311,12 +312,16 @@ def slow_smooth(t, gyro, accel, mag, config: EstimatorConfig):
     q_out, b_out, P_out = forward.q.copy(), forward.bias.copy(), forward.cov.copy()
     sg2, sb2 = config.gyro_noise_density**2, config.gyro_bias_random_walk**2
     ss2 = config.gyro_scale_noise_density**2  # × |ω|²: the rate noise's part ∝ the rate
+    # a pass's heading is referenced from its magnetometer (or a heading set) on, until it
+    # starts afresh (INITIALISED: heading free again, unless referenced at that sample)
     f_heading = b_heading = False
     b_heading_at = np.zeros(n, dtype=bool)
     for k in range(n - 1, -1, -1):
+        b_heading = b_heading and not bflags[k] & StepFlags.INITIALISED
         b_heading = b_heading or bool(bflags[k] & StepFlags.HEADING_ALIGNED) or bmag[k]
         b_heading_at[k] = b_heading
     for k in range(n):
+        f_heading = f_heading and not forward.flags[k] & StepFlags.INITIALISED
         f_heading = f_heading or bool(forward.flags[k] & StepFlags.HEADING_ALIGNED)
         f_heading = f_heading or bool(forward.mag_used[k])
         if forward.flags[k] & none or bflags[k] & (none | restarts):
@@ -341,14 +346,19 @@ def slow_smooth(t, gyro, accel, mag, config: EstimatorConfig):
             P_b = Phi @ bP[k + 1] @ Phi.T + Q
         R_f = _rotation(forward.q[k])
         d = reference.chart_inverse(R_b * R_f.inv(), "heading_tilt")
-        # the backward attitude's information, turned onto the forward heading in 6-D
-        both = f_heading and b_heading_at[k]
+        # the backward attitude's information, turned onto the forward heading where the
+        # backward heading is free; where only the forward one is, that one is taken as
+        # free (uniform: its variance raised by π²)
+        both = b_heading_at[k]
         A = np.eye(3) if both else reference.rz(-d[2]).as_matrix()
         dims = [0, 1, 2] if both else [0, 1]
         R = (A @ P_b[:3, :3] @ A.T)[np.ix_(dims, dims)]
         H = np.eye(6)[dims]
         information = H.T @ np.linalg.inv(R) @ H
-        P = np.linalg.inv(np.linalg.inv(forward.cov[k]) + information)
+        P_f = forward.cov[k].copy()
+        if both and not f_heading:
+            P_f[2, 2] += np.pi**2
+        P = np.linalg.inv(np.linalg.inv(P_f) + information)
         x = P @ H.T @ np.linalg.inv(R) @ d[dims]
         q_out[k] = _quat(reference.chart(x[:3], "heading_tilt") * R_f)
         b_out[k] = forward.bias[k] + x[3:]
@@ -372,6 +382,62 @@ def test_smooth_agrees_with_a_slow_reference(with_mag: bool, scale_noise: float)
     # and it did fuse: most samples moved off the forward estimate
     forward = estimate(data.t, data.gyro, data.accel, mag, config)
     assert np.mean(np.any(out.q != forward.q, axis=1)) > 0.95
+
+
+def _restarted_flight(seeds: tuple[int, int], silent: float) -> tuple[np.ndarray, ...]:
+    """Two simulated flights (100 Hz, the magnetometer at 10 Hz), the second's clock
+    started again at 0 (a reboot) and its magnetometer silent for its first ``silent`` s;
+    t, gyro, accel, mag, the true attitude, and where the second begins."""
+    flights = [simulate(30.0, 100.0, seed=seed) for seed in seeds]
+    mags = []
+    for i, data in enumerate(flights):
+        mag = np.full_like(data.mag, np.nan)
+        mag[::10] = data.mag[::10]
+        if i:
+            mag[data.t < silent] = np.nan
+        mags.append(mag)
+    joined = (
+        np.concatenate([getattr(d, name) for d in flights])
+        for name in ("t", "gyro", "accel", "q_true")
+    )
+    t, gyro, accel, q_true = joined
+    return t, gyro, accel, np.concatenate(mags), q_true, flights[0].t.shape[0]
+
+
+def test_smooth_agrees_with_a_slow_reference_across_a_restart() -> None:
+    """After a reboot the forward pass's heading is free until its magnetometer speaks
+    again, and the backward pass's after its own restart: which pass's heading is fused
+    follows each one's since it last started (INITIALISED)."""
+    t, gyro, accel, mag, _, _ = _restarted_flight((1, 2), 3.0)
+    keep = slice(2500, 3600)  # the first flight's end, the restart, 8 s of the second
+    t, gyro, accel, mag = t[keep], gyro[keep], accel[keep], mag[keep]
+    config = EstimatorConfig()
+    q, b, P = slow_smooth(t, gyro, accel, mag, config)
+    out = smooth(t, gyro, accel, mag, config)
+    np.testing.assert_allclose(out.q, q, atol=1e-9)
+    np.testing.assert_allclose(out.bias, b, atol=1e-9)
+    np.testing.assert_allclose(out.cov, P, atol=1e-9 * np.abs(P).max())
+
+
+@pytest.mark.parametrize("seeds", [(1, 2), (5, 6)])
+def test_after_a_restart_the_heading_is_the_pass_that_references_it(
+    seeds: tuple[int, int],
+) -> None:
+    """The 3 s after a reboot, before the magnetometer's next reading: the filter's heading
+    is free (tens of degrees off, with its initial σ); the smoothed one is the backward
+    pass's, which its magnetometer referenced, with that pass's σ."""
+    t, gyro, accel, mag, q_true, restart = _restarted_flight(seeds, 3.0)
+    window = slice(restart + 5, restart + 300)
+    filtered = estimate(t, gyro, accel, mag)
+    smoothed = smooth(t, gyro, accel, mag)
+    errors = {}
+    for name, out in (("filter", filtered), ("smooth", smoothed)):
+        heading = np.degrees(attitude_errors(out.q[window], q_true[window]).heading)
+        sigma = np.degrees(np.sqrt(out.cov[window, 2, 2]))
+        errors[name] = (np.median(np.abs(heading)), np.mean(np.abs(heading) > 3.0 * sigma))
+    assert errors["filter"][0] > 10.0, errors  # (what there is to mend)
+    assert errors["smooth"][0] < 4.0, errors
+    assert errors["smooth"][1] < 0.1, errors
 
 
 def test_blocks_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -455,6 +521,8 @@ def _damaged(kind: str):
         t[1000] = 1e12
     elif kind == "absurd_last_timestamp":
         t[-1] = 1e12
+    elif kind == "infinite_last_timestamp":
+        t[-1] = np.inf
     elif kind == "gap":
         t[1000:] += 30.0
     elif kind == "restart":
@@ -472,6 +540,7 @@ def _damaged(kind: str):
         "time_back",
         "absurd_timestamp",
         "absurd_last_timestamp",
+        "infinite_last_timestamp",
         "gap",
         "restart",
         "absurd_values",
@@ -482,7 +551,9 @@ def test_bad_input_is_flagged_never_fatal(kind: str, with_mag: bool) -> None:
     data, t, gyro, accel, mag = _damaged(kind)
     mag = mag if with_mag else None
     forward = _forward_pass(t, gyro, accel, mag)
-    out = smooth(t, gyro, accel, mag)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (nor a NumPy warning: the flags say it)
+        out = smooth(t, gyro, accel, mag)
     np.testing.assert_array_equal(out.flags, forward.flags)
     for name in ("q", "bias", "cov"):
         assert np.all(np.isfinite(getattr(out, name))), name
@@ -495,6 +566,23 @@ def test_bad_input_is_flagged_never_fatal(kind: str, with_mag: bool) -> None:
         f = attitude_errors(forward.q[good], data.q_true[good]).inclination
         s = attitude_errors(out.q[good], data.q_true[good]).inclination
         assert _rms_deg(s) < _rms_deg(f)
+
+
+def test_what_the_filter_can_start_on_is_smoothed() -> None:
+    """A sustained 1.6 g turn with a moment level (0.2 s): the filter starts there, the
+    averaged accelerometer never comes near g; the smoother starts where the filter does
+    (its forward pass then takes the accelerometer as measured) rather than refuse."""
+    n = 3000
+    t = np.arange(n) * 0.01
+    gyro = np.zeros((n, 3))
+    gyro[:, 2] = 0.3
+    accel = np.tile([0.0, 0.0, -1.6 * 9.80665], (n, 1))
+    accel[1500:1520] = [0.0, 0.0, -9.80665]
+    started = StepFlags.NOT_INITIALISED
+    filtered = estimate(t, gyro, accel)
+    smoothed = smooth(t, gyro, accel)
+    np.testing.assert_array_equal(smoothed.flags & started, filtered.flags & started)
+    assert np.count_nonzero((smoothed.flags & started) == 0) == 1500
 
 
 def test_accelerometer_in_g_is_refused_as_by_estimate() -> None:

@@ -59,6 +59,11 @@ MAX_ANGULAR_RATE = 50.0  # rad/s
 MAX_GYRO_BIAS = 0.5  # rad/s per axis (29°/s: beyond any MEMS gyro's offset, calibrated or not)
 MAX_ATTITUDE_VAR = 4.0 * math.pi**2  # rad², any δθ axis
 MAX_CONSIDERED_VAR = 1e6  # (m/s²)², (m/s³)², (m/s)²: the low-pass's ε, ḟ and the velocity
+# Heading's σ never exceeds 180°: a wrapped normal that wide is as good as uniform, and
+# the linear model of a wider one means nothing (6-D, hours without a compass). The health
+# check caps heading's variance at this; the smoother gives it to a heading nothing has
+# referenced yet, which says nothing of the world's north.
+MAX_HEADING_VAR = math.pi**2  # rad²
 
 # The Gauss–Newton iterations of a gravity update at most (max_iterations): quadratic
 # convergence reaches any tolerance in a few; a sample's count is stored in 16 bits.

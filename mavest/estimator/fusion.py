@@ -16,7 +16,17 @@ import numpy as np
 from mavest import so3
 from mavest._jit import kernel
 from mavest.estimator.charts import chart_log_into, retract_into
+from mavest.estimator.config import MAX_HEADING_VAR
 from mavest.estimator.layout import CHART_HEADING_TILT, ERROR_LEFT
+
+# What of the backward prior's attitude a sample fuses (fuse_block's ``heading``): its
+# tilt alone, turned onto the forward heading (the passes do not both reference heading,
+# or neither does); all of it (both do); all of it with the forward heading taken as
+# free, of variance MAX_HEADING_VAR (only the backward pass references heading there:
+# the forward one started afresh and has not met its magnetometer yet).
+TILT = 0
+TILT_AND_HEADING = 1
+BACKWARD_HEADING = 2
 
 
 @kernel
@@ -134,8 +144,10 @@ def fuse_block(
     estimate at k, or, where it ``measured`` at k, its estimate at k + 1 predicted back
     by ``gyro_next[k]`` (its gyro over (t_k, t_k+1]) and ``dt[k]``. Its attitude is a
     measurement of the forward error, d = chart⁻¹(q_b q_f⁻¹) in the heading-tilt chart:
-    all three components where ``heading[k]`` (both passes reference heading), else its
-    tilt (τx, τy) with its covariance turned by Rz(−ψ) onto the forward heading. ``right``:
+    all three components where ``heading[k]`` is TILT_AND_HEADING or BACKWARD_HEADING
+    (then the forward heading's variance raised by MAX_HEADING_VAR first), its tilt
+    (τx, τy) with its covariance turned by Rz(−ψ) onto the forward heading where it is
+    TILT. ``right``:
     the covariances are the right error's (body frame), as the filter's output then is.
     """
     n = q_f.shape[0]
@@ -202,8 +214,10 @@ def fuse_block(
         so3.quat_conjugate_into(q_f[k], conjugate)
         so3.quat_multiply_into(prior_q, conjugate, error)
         chart_log_into(error, CHART_HEADING_TILT, d)
-        if heading[k]:
+        if heading[k] != TILT:
             m = 3
+            if heading[k] == BACKWARD_HEADING:  # (world axes: z is heading)
+                Pw[2, 2] += MAX_HEADING_VAR
             for r in range(3):
                 for c in range(3):
                     S[r, c] = Pw[r, c] + Pb[r, c]

@@ -11,7 +11,12 @@ import numpy as np
 from mavest import so3
 from mavest._jit import inplace_kernel
 from mavest.estimator.alignment import accel_usable_for_alignment, align
-from mavest.estimator.config import MAX_ATTITUDE_VAR, MAX_CONSIDERED_VAR, MAX_GYRO_BIAS
+from mavest.estimator.config import (
+    MAX_ATTITUDE_VAR,
+    MAX_CONSIDERED_VAR,
+    MAX_GYRO_BIAS,
+    MAX_HEADING_VAR,
+)
 from mavest.estimator.frames import (
     attitude_covariance_from_world,
     attitude_covariance_to_world,
@@ -28,24 +33,21 @@ _UNHEALTHY_RESET = StepFlags.UNHEALTHY_RESET
 _DIVERGED = StepFlags.DIVERGED
 _BETWEEN_UPDATES = StepFlags.BETWEEN_UPDATES
 
-# Beyond MAX_GYRO_BIAS, MAX_ATTITUDE_VAR (any δθ axis; heading is capped at π², below) and
-# MAX_CONSIDERED_VAR the state is a numerical accident, not an estimate (the configuration
-# keeps its initial state within them).
-# Heading's σ never exceeds 180°: a wrapped normal that wide is as good as uniform,
-# and the linear model of a wider one means nothing (6-D, hours without a compass).
-_MAX_HEADING_VAR = math.pi**2
+# Beyond MAX_GYRO_BIAS, MAX_ATTITUDE_VAR (any δθ axis; heading is capped at
+# MAX_HEADING_VAR) and MAX_CONSIDERED_VAR the state is a numerical accident, not an
+# estimate (the configuration keeps its initial state within them).
 _FULL_CHECK_EVERY = 64  # checks
 
 
 @inplace_kernel
 def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
-    """Heading's variance at most _MAX_HEADING_VAR: its row and column in world axes
+    """Heading's variance at most MAX_HEADING_VAR: its row and column in world axes
     scaled by f (P ← D P D, D = diag(1, 1, f) on δθ: a congruence, so P stays definite)."""
     var = heading_variance(s, c)
-    if not var > _MAX_HEADING_VAR:
+    if not var > MAX_HEADING_VAR:
         return
     flush_pending(s, c)
-    f = math.sqrt(_MAX_HEADING_VAR / var)
+    f = math.sqrt(MAX_HEADING_VAR / var)
     attitude_covariance_to_world(s, c)
     for j in range(c.n_state):
         s.P[2, j] *= f

@@ -17,10 +17,12 @@ twice, and with its attitude alone: the bias is the forward pass's, corrected th
 its correlation with the attitude (fusing the biases too is better on simulated
 flights, whose noise is the filter's model, and worse on BROAD's real recordings).
 
-Without a referenced heading in both passes (6-D), heading is not observed and the
-backward pass's heading drifts apart from the forward one's: it is turned onto the
-forward heading and only its tilt is used. With both referenced (9-D) tilt and
-heading are.
+Without a referenced heading in the backward pass (6-D), heading is not observed and
+the backward pass's heading drifts apart from the forward one's: it is turned onto the
+forward heading and only its tilt is used. With both referenced (9-D) tilt and heading
+are. Where only the backward pass's is (the forward pass started afresh, at the
+recording's start or after a restart, and has not yet met its magnetometer), its
+heading is taken: the forward heading is free there, of no information.
 """
 
 from __future__ import annotations
@@ -34,12 +36,13 @@ from mavest.estimator.config import MAX_SPECIFIC_FORCE, EstimatorConfig, config_
 from mavest.estimator.estimator import (
     EstimateSeries,
     Estimator,
+    InputError,
     batch_inputs,
     estimate,
     refuse_wrong_unit,
 )
 from mavest.estimator.frames import add_alignment
-from mavest.estimator.fusion import fuse_block
+from mavest.estimator.fusion import BACKWARD_HEADING, TILT, TILT_AND_HEADING, fuse_block
 from mavest.estimator.layout import StepFlags
 from mavest.estimator.zero_phase import zero_phase_blocks
 
@@ -79,17 +82,24 @@ def smooth(
     as :func:`estimate`, and the same fields and conventions in the result: ``q``,
     ``bias`` and ``cov`` smoothed; ``flags`` and the update diagnostics (innovation,
     NIS, ``accel_used``, ...) those of the forward pass, which is :func:`estimate` on
-    the averaged accelerometer (:func:`forward_accel`; with ``smooth_accel_time`` 0, or
-    a known acceleration, :func:`estimate`'s own).
+    the averaged accelerometer (:func:`forward_accel`; with ``smooth_accel_time`` 0, a
+    known acceleration, or where the average never lets the filter start, :func:`estimate`'s
+    own).
     Where the forward pass has no estimate (not initialised, skipped samples) or the
     backward pass has none to fuse (see :func:`smooth_forward`), the forward estimate
     is returned unchanged.
     """
     config = config_or_default(config)
     t, gyro, accel, mag, linear_accel = batch_inputs(t, gyro, accel, mag, linear_accel)
+    forward = None
     if config.smooth_accel_time > 0.0 and not _any_known(linear_accel):
-        forward = _forward_on_averaged_accel(t, gyro, accel, mag, config)
-    else:  # (a known acceleration already takes out what the average would)
+        try:
+            forward = _forward_on_averaged_accel(t, gyro, accel, mag, config)
+        except InputError:
+            # Never near g on average (a long turn with a moment level), where the filter
+            # starts on that moment's samples: the forward pass takes them as measured.
+            forward = None
+    if forward is None:  # (a known acceleration already takes out what the average would)
         forward = estimate(t, gyro, accel, mag, config, linear_accel)
     return smooth_forward(forward, t, gyro, accel, mag, config, linear_accel)
 
@@ -192,7 +202,9 @@ def smooth_forward(
     last = np.flatnonzero(has_forward)[-1]
     t_last = t[last]
     heading_known = (forward.flags & StepFlags.HEADING_ALIGNED) != 0
-    forward_heading = np.logical_or.accumulate(heading_known | forward.mag_used)
+    forward_heading, _ = _referenced_since_start(
+        heading_known | forward.mag_used, (forward.flags & StepFlags.INITIALISED) != 0, False
+    )
     # The passes are fused on the filter's own covariances: the accelerometer's alignment
     # is the same error in both, not two independent ones, and no fusing removes it. It
     # is taken off the forward pass's and added to the smoothed ones at the end.
@@ -238,9 +250,11 @@ def smooth_forward(
             None if linear is None else linear[order],
         )
         referenced = ((out.flags & StepFlags.HEADING_ALIGNED) != 0) | out.mag_used
-        referenced[0] |= backward_heading
-        backward_heading_at = np.logical_or.accumulate(referenced)[::-1]
-        backward_heading = bool(backward_heading_at[0])
+        started = (out.flags & StepFlags.INITIALISED) != 0
+        backward_heading_at, backward_heading = _referenced_since_start(
+            referenced, started, backward_heading
+        )
+        backward_heading_at = backward_heading_at[::-1]
         # in time order from here
         flags_b = out.flags[::-1]
         flags_next = np.append(flags_b[1:], after_flags)
@@ -251,6 +265,8 @@ def smooth_forward(
             & (~measured | ((flags_next & _NO_ESTIMATE) == 0))
         )
         following = following[::-1]
+        with np.errstate(invalid="ignore"):  # (∞ − ∞ at a last sample of time ∞: unused)
+            dt = t[following] - t[lo:hi]
         fuse_block(
             forward.q[lo:hi],
             forward.bias[lo:hi],
@@ -262,10 +278,10 @@ def smooth_forward(
             after_b,
             after_P,
             -gyro[following],
-            t[following] - t[lo:hi],
+            dt,
             fused,
             measured,
-            forward_heading[lo:hi] & backward_heading_at,
+            _heading_fused(forward_heading[lo:hi], backward_heading_at),
             right,
             config.gyro_noise_density,
             config.gyro_scale_noise_density,
@@ -275,3 +291,27 @@ def smooth_forward(
         after_q, after_b, after_P = out.q[-1].copy(), out.bias[-1].copy(), out.cov[-1].copy()
     add_alignment(forward.q, alignment, right, forward.cov)
     return forward
+
+
+def _referenced_since_start(
+    referenced: np.ndarray, started: np.ndarray, before: bool
+) -> tuple[np.ndarray, bool]:
+    """Per sample of a pass (in its order), whether its heading has been referenced (the
+    magnetometer, or a known heading) since it last started afresh (``started``: its
+    attitude from that sample's accelerometer alone, heading free; a sample may start
+    and be referenced at once), with ``before`` whether it was at the sample before the
+    first; and whether it is at the last sample (the next call's ``before``)."""
+    index = np.arange(referenced.shape[0])
+    last_referenced = np.maximum.accumulate(np.where(referenced, index, -1))
+    last_start = np.maximum.accumulate(np.where(started, index, -1))
+    out = (last_referenced >= last_start) & ((last_referenced >= 0) | before)
+    return out, bool(out[-1]) if out.shape[0] else before
+
+
+def _heading_fused(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
+    """What of the backward prior each sample fuses (:data:`~mavest.estimator.fusion.TILT`
+    and the rest), by which passes reference heading there."""
+    fused = np.full(forward.shape, TILT, dtype=np.int64)
+    fused[backward] = BACKWARD_HEADING
+    fused[backward & forward] = TILT_AND_HEADING
+    return fused
