@@ -607,6 +607,23 @@ def test_empty_and_single_sample_inputs() -> None:
     np.testing.assert_allclose(one.q, [[1.0, 0.0, 0.0, 0.0]])
 
 
+def test_the_smoothers_parts_name_a_wrong_argument() -> None:
+    """forward_accel and smooth_forward, for a forward pass run otherwise, check what
+    they are given as smooth does: a ValueError naming it, not NumPy's own."""
+    data = simulate(2.0, 100.0, seed=3)
+    t, gyro, accel = data.t, data.gyro, data.accel
+    config = EstimatorConfig()
+    assert smoother.forward_accel(t[:0], gyro[:0], accel[:0], config).shape == (0, 3)
+    forward = estimate(t, gyro, accel)
+    with pytest.raises(ValueError, match="forward pass has 201 samples, t has 196"):
+        smoother.smooth_forward(forward, t[:-5], gyro[:-5], accel[:-5])
+    with pytest.raises(ValueError, match="gyro must have shape"):
+        smoother.smooth_forward(forward, t, gyro[:, :2], accel)
+    with pytest.raises(ValueError, match="cov must be"):
+        start = ([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0], np.eye(3))
+        smoother.smooth_forward(forward, t, gyro, accel, backward_start=start)
+
+
 @pytest.mark.parametrize("name", ["small", "bursts", "small_9d"])
 def test_smoothed_covariance_is_consistent(name: str) -> None:
     """A small Monte Carlo of the smoother (tools/consistency.py --smooth runs the full one)."""

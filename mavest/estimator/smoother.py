@@ -117,7 +117,8 @@ def forward_accel(
     or ``accel`` itself when that is 0. For a forward pass run otherwise (e.g. from a
     known state, then given to :func:`smooth_forward`); :func:`smooth` itself takes it
     a block at a time."""
-    if config.smooth_accel_time <= 0.0:
+    t, gyro, accel, _, _ = batch_inputs(t, gyro, accel)
+    if config.smooth_accel_time <= 0.0 or t.shape[0] == 0:
         return accel
     return np.concatenate(list(_averaged_blocks(t, gyro, accel, config)))
 
@@ -188,15 +189,13 @@ def smooth_forward(
     covariance already says what it knows across them.
     """
     config = config_or_default(config)
-    t = np.ascontiguousarray(t, dtype=np.float64)
+    t, gyro, accel, mag_array, linear = batch_inputs(t, gyro, accel, mag, linear_accel)
     n = t.shape[0]
+    if len(forward) != n:
+        raise ValueError(f"the forward pass has {len(forward)} samples, t has {n}")
     has_forward = (forward.flags & _NO_ESTIMATE) == 0
     if n == 0 or not np.any(has_forward):
         return forward
-    gyro = np.asarray(gyro, dtype=np.float64)
-    accel = np.asarray(accel, dtype=np.float64)
-    mag_array = None if mag is None else np.asarray(mag, dtype=np.float64)
-    linear = None if linear_accel is None else np.asarray(linear_accel, dtype=np.float64)
     # Reversed time, increasing: t' = t_last − t, t_last a time the forward pass took
     # (a corrupt timestamp elsewhere is then far off the backward timeline as well).
     last = np.flatnonzero(has_forward)[-1]
@@ -229,6 +228,8 @@ def smooth_forward(
         backward.initialise(0.0, forward.q[last], heading_known=_any_known(linear))
     else:
         q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
+        if P0.shape != (6, 6):  # (the rest Estimator.initialise checks)
+            raise ValueError(f"backward_start's cov must be (6, 6), got shape {P0.shape}")
         flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
         backward.initialise(0.0, q0, -b0, flip @ P0 @ flip)
     right = config.error == "right"
