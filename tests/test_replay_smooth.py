@@ -468,6 +468,42 @@ def test_inputs_are_kept_compactly_a_chunk_at_a_time() -> None:
     assert (gyro[: n // 2] == (0.1, 0.2, 0.3)).all() and (accel[n // 2 :] == 1.0).all()
 
 
+def test_smoothing_a_stream_holds_little_beyond_the_smoother(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Beyond what ``smooth`` itself allocates (its result: 401 bytes a sample), a stream's
+    smoothing holds its inputs (104 bytes a sample, and 24 for the GPS acceleration moved
+    to its interval): what it keeps of the result (q, the angles and their σ, the bias
+    and its σ) is made after, a chunk at a time, not held beside it."""
+    log = tmp_path / "flight.tlog"
+    write_flight_tlog(log, 40.0, 1000.0, AUTOPILOTS["ardupilot"], seed=2)
+    peaks: dict[str, float] = {}
+    smooth, smooth_stream = smoothing.smooth, runners.smooth_stream
+
+    def measured_smooth(t: np.ndarray, *args: Any) -> Any:
+        entry = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        out = smooth(t, *args)
+        peaks["smooth"] = (tracemalloc.get_traced_memory()[1] - entry) / t.shape[0]
+        return out
+
+    def measured_stream(stream: Any) -> Any:
+        n = len(stream.inputs)
+        tracemalloc.start()
+        try:
+            entry = tracemalloc.get_traced_memory()[0]
+            out = smooth_stream(stream)
+            peaks["stream"] = (tracemalloc.get_traced_memory()[1] - entry) / n
+        finally:
+            tracemalloc.stop()
+        return out
+
+    monkeypatch.setattr(smoothing, "smooth", measured_smooth)
+    monkeypatch.setattr(runners, "smooth_stream", measured_stream)
+    _replay(log)
+    assert peaks["stream"] - peaks["smooth"] <= 104 + 24 + 50, peaks
+
+
 def test_samples_the_filter_skipped_are_not_inputs() -> None:
     inputs = RecordedInputs()
     t = np.arange(5.0)

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mavest import so3
-from mavest.estimator import InputError, StepFlags, smooth
+from mavest.estimator import EstimateSeries, InputError, StepFlags, smooth
 from mavest.evaluation.online import ESTIMATE, REFERENCE, ComparisonResult, EulerComparison
 
 if TYPE_CHECKING:
@@ -308,6 +308,22 @@ def measured_interval_acceleration(linear_accel: np.ndarray) -> np.ndarray:
     return out
 
 
+def _kept_of(series: EstimateSeries, error: str) -> tuple[np.ndarray, ...]:
+    """What a smoothed stream keeps of the smoother's result: q and bias (its own arrays,
+    not copies), the angles and their σ, the bias's σ (made :data:`CHUNK` rows at a
+    time: their temporaries are a chunk's, whatever the length)."""
+    n = series.q.shape[0]
+    euler, sigma, bias_sigma = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    for lo in range(0, n, CHUNK):
+        rows = slice(lo, min(lo + CHUNK, n))
+        cov = series.cov[rows]
+        euler[rows] = so3.euler_zyx_from_quats(series.q[rows])
+        sigma[rows] = so3.euler_sigmas(series.q[rows], cov[:, :3, :3], error)
+        bias_variance = np.diagonal(cov[:, 3:, 3:], axis1=1, axis2=2)
+        bias_sigma[rows] = np.sqrt(np.maximum(bias_variance, 0.0))
+    return series.q, euler, sigma, series.bias, bias_sigma
+
+
 def smooth_stream(stream: Stream) -> SmoothedStream | None:
     """A stream's recorded inputs smoothed, a segment per timeline; its comparisons made
     again with the result. A segment the smoother refuses (nothing in it could start the
@@ -323,7 +339,7 @@ def smooth_stream(stream: Stream) -> SmoothedStream | None:
     t, gyro, accel, mag, linear_accel = inputs.take()
     linear_accel = measured_interval_acceleration(linear_accel)
     n = t.shape[0]
-    q, euler, sigma, bias, bias_sigma = (np.full((n, k), math.nan) for k in (4, 3, 3, 3, 3))
+    parts: list[tuple[np.ndarray, ...]] = []  # per timeline: q, euler, sigma, bias, bias σ
     refused = 0
     for first, end in zip(segments, [*segments[1:], n], strict=True):
         part = slice(first, end)
@@ -337,16 +353,17 @@ def smooth_stream(stream: Stream) -> SmoothedStream | None:
             )
             log.warning("%s: not smoothed%s: %s", stream.key, where, error)
             refused += end - first
+            parts.append(tuple(np.full((end - first, k), math.nan) for k in (4, 3, 3, 3, 3)))
             continue
-        q[part] = series.q
-        euler[part] = series.euler
-        sigma[part] = so3.euler_sigmas(series.q, series.cov[:, :3, :3], config.error)
-        bias[part] = series.bias
-        bias_variance = np.diagonal(series.cov[:, 3:, 3:], axis1=1, axis2=2)
-        bias_sigma[part] = np.sqrt(np.maximum(bias_variance, 0.0))
-        del series  # (its covariances: 288 bytes a sample)
+        parts.append(_kept_of(series, config.error))
+        del series  # (all but what is kept: its covariances are 288 bytes a sample)
+    del gyro, accel, mag, linear_accel  # (t is all that is needed from here)
     if refused == n:
         return None
+    q, euler, sigma, bias, bias_sigma = (
+        parts[0][i] if len(parts) == 1 else np.concatenate([p[i] for p in parts]) for i in range(5)
+    )
+    del parts
     smoothed = SmoothedStream(t, q, euler, sigma, bias, bias_sigma, refused=refused)
     for name in ("vs_truth", "vs_autopilot"):
         comparison = getattr(stream, name)
