@@ -46,10 +46,10 @@ from mavest.mavlink.messages import IMU_MESSAGES
 from mavest.mavlink.signing import KEY_ENVIRONMENT_VARIABLE, Signing
 from mavest.mavlink.tlog import TlogError
 from mavest.onboard import OnboardLogError
-from mavest.paths import OutputPathError, check_outputs, write_atomically
+from mavest.paths import InputFiles, OutputPathError, check_outputs, write_atomically
 from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import EstimatesTableError, table_format
-from mavest.service.log_repeats import RepeatLimiter
+from mavest.service.log_repeats import UNLIMITED, RepeatLimiter
 from mavest.service.runners import Outputs, RunReport, replay, run_live
 from mavest.service.signals import sigterm_interrupts, stop_on_signals
 from mavest.sim.flight import SimulatorMissingError
@@ -165,6 +165,15 @@ def _say(text: str, end: str = "\n") -> None:
         raise UsageError(f"cannot write to standard output: {error.strerror or error}") from None
 
 
+def _tolerant_stdout() -> None:
+    """Standard output escapes what its encoding cannot write, as standard error does: a
+    file name that is no text in it (a Linux name is bytes; ``caf\xe9.tlog`` under a
+    UTF-8 locale) prints as ``caf\udce9.tlog`` instead of ending the run in a traceback
+    at its last line."""
+    if isinstance(sys.stdout, io.TextIOWrapper) and sys.stdout.errors == "strict":
+        sys.stdout.reconfigure(errors="backslashreplace")
+
+
 def _silence_stdout() -> None:
     """Point standard output at the null device: the interpreter's last flush of what
     could not be written then succeeds instead of printing a traceback."""
@@ -226,7 +235,7 @@ numba_event.register("numba:compile", COMPILING)
 
 
 def _refuse_overlaps(
-    inputs: dict[str, str | Path | None], outputs: dict[str, str | Path | None]
+    inputs: dict[str, str | Path | None] | InputFiles, outputs: dict[str, str | Path | None]
 ) -> None:
     try:
         check_outputs(inputs, outputs)
@@ -355,6 +364,10 @@ def _replay(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------
 
 
+# The failed logs a fleet run names on standard error, each once (the table has all).
+_FAILED_LOGS_SAID = 20
+
+
 def _fleet(args: argparse.Namespace) -> int:
     try:
         from mavest.fleet.cluster import FleetError, run_fleet
@@ -391,9 +404,13 @@ def _fleet(args: argparse.Namespace) -> int:
     except OSError as error:
         raise UsageError(f"cannot write {args.out}: {error.strerror or error}") from None
     failed = [row for row in result.rows if row["status"] == "error"]
-    for row in failed:
+    for row in failed[:_FAILED_LOGS_SAID]:
         message = row["error"]
-        log.warning("%s", message if row["path"] in message else f"{row['path']}: {message}")
+        line = message if row["path"] in message else f"{row['path']}: {message}"
+        log.warning("%s", line, extra={UNLIMITED: True})
+    if len(failed) > _FAILED_LOGS_SAID:
+        more = len(failed) - _FAILED_LOGS_SAID
+        log.warning("and %d more with an error: the table's error column says why", more)
     REPEATS.report(log)
     if result.interrupted:
         print(
@@ -419,24 +436,26 @@ def _with_outputs(
     names: list[str],
 ) -> list[Any]:
     """The tasks with each log's recording and estimates table in ``out_dir`` (made if
-    missing), named after the log; refused if one is an input or the table."""
+    missing, and removed again if the outputs are refused), named after the log; refused
+    if one is an input or the table (through a link too)."""
+    missing = [folder for folder in (out_dir, *out_dir.parents) if not folder.exists()]
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise UsageError(f"cannot create {out_dir}: {error.strerror}") from None
-    folder = os.path.realpath(out_dir)
-    # only the inputs in that folder can be one of its files (the check is per log)
-    near = {
-        name: path
-        for name, path in {**inputs, "the --out table": table}.items()
-        if path is not None and os.path.dirname(os.path.realpath(path)) == folder
-    }
+    read = InputFiles({**inputs, "the --out table": table})
     planned = []
-    for task, name in zip(tasks, names, strict=True):
-        rrd = out_dir.absolute() / f"{name}.rrd"
-        estimates = out_dir.absolute() / f"{name}.estimates{table.suffix.lower()}"
-        _refuse_overlaps(near, {"--out-dir's recording": rrd, "--out-dir's table": estimates})
-        planned.append(dataclasses.replace(task, rrd=str(rrd), estimates=str(estimates)))
+    try:
+        for task, name in zip(tasks, names, strict=True):
+            rrd = out_dir.absolute() / f"{name}.rrd"
+            estimates = out_dir.absolute() / f"{name}.estimates{table.suffix.lower()}"
+            _refuse_overlaps(read, {"--out-dir's recording": rrd, "--out-dir's table": estimates})
+            planned.append(dataclasses.replace(task, rrd=str(rrd), estimates=str(estimates)))
+    except UsageError:
+        for folder in missing:  # (the deepest first; empty: nothing was written)
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
     return planned
 
 
@@ -1035,6 +1054,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as done:  # --help, --version, or a mistake argparse found (said)
         return int(done.code or 0)
     _setup_logging(args)
+    _tolerant_stdout()
     try:
         return int(args.handler(args))
     except UsageError as error:

@@ -21,6 +21,7 @@ file system, and a socket cannot be opened as a file.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import shutil
 import stat
@@ -72,6 +73,34 @@ def output_target(path: str | Path) -> Path:
     return Path(os.path.realpath(path))
 
 
+# The longest file name a Linux file system takes (bytes; ext4, XFS, btrfs, tmpfs).
+_NAME_MAX = 255
+
+
+def name_start(name: str, size: int) -> str:
+    """The start of a file name that is at most ``size`` bytes, of whole characters (a
+    name is bytes: its non-UTF-8 bytes, escaped in the text, are kept as they are)."""
+    data = os.fsencode(name)
+    end = min(size, len(data))
+    while 0 < end < len(data) and data[end] & 0xC0 == 0x80:  # (inside a character)
+        end -= 1
+    return os.fsdecode(data[:end])
+
+
+def _hidden_name(name: str, kind: str, pid: int | None = None) -> str:
+    """The name of mavest's own file beside the file ``name`` (``kind``: probe, partial):
+    hidden, the process's (``pid``, by default this one's), and never longer than a file
+    name may be: a name near the limit keeps its start and a digest of the whole, so
+    that its file is still its own."""
+    tail = f".{os.getpid() if pid is None else pid}.{kind}"
+    hidden = f".{name}{tail}"
+    if len(os.fsencode(hidden)) <= _NAME_MAX:
+        return hidden
+    digest = hashlib.sha256(os.fsencode(name)).hexdigest()[:16]
+    room = _NAME_MAX - len(tail) - len(digest) - 2  # ("." before, "~" between)
+    return f".{name_start(name, room)}~{digest}{tail}"
+
+
 def _check_writable(name: str, path: Path, target: str) -> None:
     """Refuse (:class:`OutputPathError`) an output that could not be written: a block
     device, a socket, a file or folder without write permission (or on a read-only
@@ -87,7 +116,7 @@ def _check_writable(name: str, path: Path, target: str) -> None:
         return  # written in place: nothing is made beside it
     # a regular file (or none yet) is written beside itself and renamed: try the folder
     folder = os.path.dirname(target)
-    probe = os.path.join(folder, f".{os.path.basename(target)}.{os.getpid()}.probe")
+    probe = os.path.join(folder, _hidden_name(os.path.basename(target), "probe"))
     try:
         os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
     except OSError as error:
@@ -99,22 +128,47 @@ def _check_writable(name: str, path: Path, target: str) -> None:
         os.unlink(probe)
 
 
+class InputFiles:
+    """The files a run reads, by resolved path and by (device, inode), so that each of
+    many outputs is checked against all of them at once (``mavest fleet``: thousands of
+    logs, two outputs each)."""
+
+    def __init__(self, inputs: Mapping[str, str | Path | None]) -> None:
+        self._by_path: dict[str, str] = {}
+        self._by_inode: dict[tuple[int, int], str] = {}
+        for name, given in inputs.items():
+            if given is not None:
+                path, inode = _identity(Path(given))
+                self._by_path.setdefault(path, name)
+                if inode is not None:
+                    self._by_inode.setdefault(inode, name)
+
+    def named(self, identity: tuple[str, tuple[int, int] | None]) -> str | None:
+        """The name of the input that is the file of this identity, if one is."""
+        path, inode = identity
+        found = self._by_path.get(path)
+        if found is None and inode is not None:
+            found = self._by_inode.get(inode)
+        return found
+
+
 def check_outputs(
-    inputs: Mapping[str, str | Path | None], outputs: Mapping[str, str | Path | None]
+    inputs: Mapping[str, str | Path | None] | InputFiles,
+    outputs: Mapping[str, str | Path | None],
 ) -> None:
     """Refuse (:class:`OutputPathError`) outputs that are inputs, each other, have no
     folder to go in, or cannot be written there. Keys name the options
     (``"--out-tlog"``) for the message; a value of None is an option not given."""
-    read = {name: _identity(Path(p)) for name, p in inputs.items() if p is not None}
+    read = inputs if isinstance(inputs, InputFiles) else InputFiles(inputs)
     written: dict[str, tuple[str, tuple[int, int] | None]] = {}
     for name, given in outputs.items():
         if given is None:
             continue
         path = Path(given)
         identity = _identity(path)
-        for input_name, input_identity in read.items():
-            if _same(identity, input_identity):
-                raise OutputPathError(f"{name} {path} is {input_name}: refusing to write over it")
+        input_name = read.named(identity)
+        if input_name is not None:
+            raise OutputPathError(f"{name} {path} is {input_name}: refusing to write over it")
         for other, other_identity in written.items():
             if _same(identity, other_identity):
                 raise OutputPathError(f"{name} and {other} are both {path}: give each its own file")
@@ -132,15 +186,16 @@ def check_outputs(
             _check_writable(name, Path(given), written[name][0])
 
 
-def partial_path(path: str | Path) -> Path:
+def partial_path(path: str | Path, pid: int | None = None) -> Path:
     """Where a file is written before it is published at ``path`` (:func:`publish`,
-    whole, at the end), named after the process, so that two runs never write the
-    same one: a hidden file beside the file ``path`` resolves to, so that the rename
-    cannot cross file systems; for an output written in place (:func:`writes_in_place`),
-    in the temporary folder, whence it is copied."""
+    whole, at the end), named after the process (``pid``: another's, by default this
+    one), so that two runs never write the same one: a hidden file beside the file
+    ``path`` resolves to, so that the rename cannot cross file systems; for an output
+    written in place (:func:`writes_in_place`), in the temporary folder, whence it is
+    copied."""
     target = output_target(path)
     folder = Path(tempfile.gettempdir()) if writes_in_place(path) else target.parent
-    return folder / f".{target.name}.{os.getpid()}.partial"
+    return folder / _hidden_name(target.name, "partial", pid)
 
 
 def publish(temporary: Path, path: str | Path) -> None:

@@ -248,6 +248,27 @@ def test_a_full_standard_output_is_one_line_and_exit_code_2(tmp_path: Path, comm
     assert done.stderr == "mavest: cannot write to standard output: No space left on device\n"
 
 
+def test_a_file_name_that_is_not_text_in_the_locale_is_printed_escaped(tmp_path: Path) -> None:
+    """A Linux file name is bytes: ``r\xe9.csv`` is no UTF-8. Standard output in a UTF-8
+    locale is strict (unlike the C locale's): the summary's last line ended the run in
+    a traceback, the file written. It is escaped now, as standard error does."""
+    source = tmp_path / "in.tlog"
+    _small_tlog(source)
+    out = os.fsdecode(bytes(tmp_path) + b"/r\xe9.csv")
+    env = {**os.environ, "PYTHONIOENCODING": "utf-8:strict"}  # (a UTF-8 locale's stdout)
+    done = subprocess.run(
+        [*MAVEST, "replay", str(source), "--estimates", out],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    assert "r\\udce9.csv (estimates table)" in done.stdout
+    assert Path(out).stat().st_size > 0
+
+
 @pytest.mark.parametrize("command", [["sim", "--seconds", "1", "--tlog"], ["demo", "--output-dir"]])
 def test_a_tlog_that_cannot_be_written_is_one_line(
     tmp_path: Path,

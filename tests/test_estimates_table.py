@@ -338,7 +338,7 @@ def test_a_failed_replay_leaves_no_table(
 
 
 @contextlib.contextmanager
-def _file_size_limit(limit: int) -> Iterator[None]:
+def file_size_limit(limit: int) -> Iterator[None]:
     """Writes past ``limit`` bytes of a file fail (EFBIG), as on a full disk."""
     soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
     handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
@@ -355,7 +355,7 @@ def test_a_full_disk_stops_the_table_and_not_the_replay(
 ) -> None:
     monkeypatch.setattr(estimates_table, "BLOCK_ROWS", BLOCK)
     csv_path, parquet_path = tmp_path / "table.csv", tmp_path / "table.parquet"
-    with _file_size_limit(100_000):  # well under either table
+    with file_size_limit(100_000):  # well under either table
         reports = [_replay(flight, Outputs(estimates=p)) for p in (csv_path, parquet_path)]
     assert all(_estimated(report) == 1601 for report in reports)  # estimating went on
     # the CSV stops at its last whole row: the first rows of the whole table
@@ -363,8 +363,11 @@ def test_a_full_disk_stops_the_table_and_not_the_replay(
     whole = replays["csv", True][0].read_bytes()
     assert kept.endswith(b"\n") and whole.startswith(kept) and 0 < len(kept) <= 100_000
     assert "stopped early: cannot write" in reports[0].summary()
-    # a Parquet file is whole or absent
+    # a Parquet file is whole or absent, and the summary does not say it was written
     assert not parquet_path.exists() and parquet_path in reports[1].output_errors
+    summary = reports[1].summary()
+    assert f"wrote {parquet_path}" not in summary
+    assert f"no estimates table written: cannot write {parquet_path}" in summary
     assert sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import csv
+import dataclasses
 import io
 import logging
 import math
@@ -34,6 +35,7 @@ import dask
 import fsspec
 import pyarrow.parquet as pq
 from distributed import Client
+from test_estimates_table import file_size_limit
 from test_output_files import read_only_folder  # noqa: F401 (a fixture)
 from tool_module import load_tool
 
@@ -116,6 +118,15 @@ def test_output_names_are_the_logs_told_apart_in_order() -> None:
 
 
 # ---------------------------------------------------------- one log = mavest replay
+
+
+def test_output_names_of_long_log_names_are_file_names() -> None:
+    """A log's name may take the 255 bytes a file name has; its outputs add a suffix."""
+    long = "l" * 250
+    names = output_names([f"{long}.tlog", f"a/{long}.bin", "é" * 126 + ".ulg"])
+    assert names[0] == "l" * 233 and names[1] == "l" * 233 + "-2"
+    assert names[2] == "é" * 116  # (whole characters: 232 bytes)
+    assert all(len(os.fsencode(f"{n}.estimates.parquet")) <= 255 for n in names)
 
 
 def test_a_log_s_rows_are_its_replay(flights: Path, tmp_path: Path) -> None:
@@ -212,6 +223,18 @@ def test_a_remote_log_is_copied_and_replayed(flights: Path) -> None:
     assert empty["error"] == "memory:///fleet/logs/empty.tlog is empty"
 
 
+def test_a_recording_cut_short_is_named_as_it_is_left(flights: Path, tmp_path: Path) -> None:
+    """A recording is written under a hidden partial name and renamed when done; a full
+    disk's warning named that partial file, gone by the time the row is read."""
+    rrd = tmp_path / "a.rrd"
+    task = dataclasses.replace(LogTask(str(flights / "a.tlog"), CONFIG), rrd=str(rrd))
+    with file_size_limit(20_000):
+        (row,) = log_rows(task)
+    assert row["status"] == "ok" and row["warnings"], row
+    assert ".partial" not in row["warnings"] and str(rrd) in row["warnings"]
+    assert rrd.exists() and not list(tmp_path.glob(".*"))
+
+
 def test_a_file_url_is_the_path_it_names(flights: Path) -> None:
     url = (flights / "a.tlog").as_uri()  # file:///…/a.tlog
     assert url in expand([flights.as_uri() + "/*.tlog"])[0]
@@ -252,6 +275,21 @@ def test_a_folder_of_good_and_broken_logs_on_a_local_cluster(
     assert all(_same(rows[0][k], a_row[k]) for k in COLUMN_NAMES)
 
 
+def test_every_failed_log_is_named_up_to_twenty(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The failures are distinct (a log each): the repeat limiter, which keeps a stream's
+    repeated event to three lines, named three of them and counted the rest as "more
+    lines like this". Twenty are named, and how many more there are."""
+    for i in range(23):
+        (tmp_path / f"log{i:02d}.tlog").write_bytes(b"")
+    table = tmp_path / "t.csv"
+    assert main(["fleet", str(tmp_path), "--out", str(table), "--workers", "1"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[:20] == [f"mavest: {tmp_path}/log{i:02d}.tlog is empty" for i in range(20)]
+    assert err[20:] == ["mavest: and 3 more with an error: the table's error column says why"]
+
+
 def test_an_output_over_an_input_is_refused(
     flights: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -268,6 +306,42 @@ def test_an_output_over_an_input_is_refused(
     assert main(["fleet", *arguments, "--out-dir", str(tmp_path)]) == 2
     assert "refusing to write over it" in capsys.readouterr().err
     assert named.read_text() == "keep me\n" and own.read_text() == "keep me too\n"
+    # a log named by its file:// URL is as much an input as by its path
+    assert main(["fleet", named.as_uri(), "--out", str(named)]) == 2
+    assert "refusing to write over it" in capsys.readouterr().err
+    # an --out-dir file that is a link to a log (in another folder) given
+    logs, out_dir = tmp_path / "logs", tmp_path / "each"
+    logs.mkdir()
+    out_dir.mkdir()
+    keep = logs / "keep.tlog"
+    keep.write_bytes((flights / "a.tlog").read_bytes())
+    (out_dir / "b.rrd").symlink_to(keep)
+    arguments = [str(flights / "b.tlog"), str(keep), "--out", str(tmp_path / "t.csv")]
+    assert main(["fleet", *arguments, "--out-dir", str(out_dir)]) == 2
+    assert f"is the log {keep}: refusing" in capsys.readouterr().err
+    assert keep.read_bytes() == (flights / "a.tlog").read_bytes()
+    # a refused run leaves no --out-dir it made
+    new = tmp_path / "new" / "each"
+    arguments = [str(flights / "a.tlog"), "--out", str(new / "a.estimates.csv")]
+    assert main(["fleet", *arguments, "--out-dir", str(new)]) == 2
+    assert "is the --out table" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+
+
+def test_a_recursive_glob_goes_through_no_link_to_a_folder(flights: Path, tmp_path: Path) -> None:
+    """Links back up (``x -> .``) made a ``**`` glob endless (two of them) or name a log
+    through 40 links (one); it now finds what a folder argument's walk finds."""
+    folder = tmp_path / "loops"
+    (folder / "day").mkdir(parents=True)
+    for name in ("z.tlog", "day/y.tlog"):
+        (folder / name).write_bytes(b"")
+    (folder / "x").symlink_to(".")
+    (folder / "day" / "up").symlink_to("..")
+    (folder / ".hidden").mkdir()
+    (folder / ".hidden" / "w.tlog").write_bytes(b"")
+    logs, _ = expand([str(folder / "**" / "*.tlog")])
+    assert logs == [str(folder / "day" / "y.tlog"), str(folder / "z.tlog")]
+    assert expand([str(folder)])[0] == logs
 
 
 # ------------------------------------------- a scheduler and workers started apart

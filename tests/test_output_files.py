@@ -28,7 +28,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 import mavest.service.runners as runners
 from mavest.cli import main
-from mavest.paths import OutputPathError, check_outputs, write_atomically
+from mavest.paths import OutputPathError, check_outputs, partial_path, write_atomically
 from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import COLUMNS, EstimatesTableError
 from mavest.service.runners import Outputs, replay
@@ -255,6 +255,19 @@ def test_an_output_that_cannot_be_written_is_refused_before_any_is_opened(
         # the earlier outputs as they were, and no file begun
         assert {p.name: p.read_bytes() for p in out.iterdir()} == before, arguments
     assert list(read_only_folder.iterdir()) == []
+
+
+def test_a_file_name_near_the_longest_is_written(flight: Path, tmp_path: Path) -> None:
+    """A name of 244 bytes is a file name; the probe and the partial file beside it, 15
+    bytes longer, were not, and the output was refused as "File name too long"."""
+    table = tmp_path / ("n" * 240 + ".csv")
+    assert main(["replay", str(flight), "--estimates", str(table), "-q"]) == 0
+    assert table.stat().st_size > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == [table.name]  # (nothing beside)
+    for name in ("é" * 126 + ".csv", os.fsdecode(b"caf\xe9" * 60 + b".csv")):  # 256, 244
+        partial = partial_path(tmp_path / name)
+        assert len(os.fsencode(partial.name)) <= 255 and partial.name.startswith(".")
+        assert partial != partial_path(tmp_path / ("x" + name))  # (each file its own)
 
 
 def test_an_output_that_fails_to_open_all_the_same_leaves_the_others_untouched(

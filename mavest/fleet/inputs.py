@@ -16,7 +16,8 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from mavest.fleet.rows import is_url
+from mavest.fleet.rows import is_url, local_file
+from mavest.paths import name_start
 
 LOG_SUFFIXES = (".tlog", ".bin", ".ulg")
 
@@ -39,9 +40,27 @@ def _folder_logs(folder: str) -> list[str]:
     return sorted(found)
 
 
+def _glob(pattern: str) -> list[str]:
+    """What a glob matches, sorted. A ``**`` goes into sub-folders but not through a
+    link to a folder (as a folder argument's walk does not): a link back up would make
+    it endless. Hidden files and folders are not matched by a wildcard, as glob's."""
+    if "**" not in pattern:
+        return sorted(glob.glob(pattern))
+    parts = Path(pattern).parts
+    fixed = 0  # the leading parts without wildcards: where the walk starts
+    while fixed < len(parts) and not glob.has_magic(parts[fixed]):
+        fixed += 1
+    start = Path(*parts[:fixed]) if fixed else Path()
+    matches = []
+    for match in start.glob(str(Path(*parts[fixed:]))):  # (pathlib: no links under **)
+        if not any(part.startswith(".") for part in match.parts[len(start.parts) :]):
+            matches.append(str(match))
+    return sorted(matches)
+
+
 def _local(argument: str) -> list[str]:
     if glob.has_magic(argument):
-        matches = sorted(glob.glob(argument, recursive=True))
+        matches = _glob(argument)
         logs: list[str] = []
         for match in matches:
             logs += _folder_logs(match) if os.path.isdir(match) else [match]
@@ -100,13 +119,19 @@ def expand(arguments: Sequence[str]) -> tuple[list[str], list[str]]:
 
 
 def local_paths(logs: Sequence[str]) -> list[Path]:
-    """The logs that are files here (not URLs), for the check that no output is one."""
-    return [Path(name) for name in logs if not is_url(name)]
+    """The logs that are files here (paths, and ``file://`` URLs: what they name is read
+    as any other file), for the check that no output is one."""
+    return [path for path in map(local_file, logs) if path is not None]
+
+
+# A log's output names must be file names (at most 255 bytes) with the longest suffix
+# and a count: NAME-999.estimates.parquet. A longer log name gives its start.
+_LONGEST_STEM = 255 - len("-999.estimates.parquet")
 
 
 def output_names(logs: Sequence[str]) -> list[str]:
     """Each log's name for its own outputs in ``--out-dir``: its file name without the
-    suffix, and for a later log of a name taken already (``a/flight.tlog``,
+    suffix (its first 233 bytes), and for a later log of a name taken already (``a/flight.tlog``,
     ``b/flight.tlog``, ``flight.bin``) that name and ``-2``, ``-3`` …: in the order of the
     logs, so the same logs give the same names. Names are compared ignoring case (a
     folder may)."""
@@ -115,6 +140,7 @@ def output_names(logs: Sequence[str]) -> list[str]:
     for log_name in logs:
         stem = log_name.rstrip("/").rsplit("/", 1)[-1].rsplit(os.sep, 1)[-1]
         stem = stem.rsplit(".", 1)[0] if "." in stem[1:] else stem
+        stem = name_start(stem, _LONGEST_STEM)
         name, n = stem, 1
         while name.lower() in taken:
             n += 1

@@ -183,6 +183,9 @@ def log_rows(task: LogTask) -> list[dict[str, Any]]:
         except Exception as error:  # a fault of mavest's: this log's row, not the run's end
             return [error_row(task.source, f"{type(error).__name__}: {error}")]
         rows = _rows(task.source, report, sigmas)
+        if task.rrd:  # (the recording was written under a partial name, its own now)
+            partial, final = str(partial_path(task.rrd)), str(task.rrd)
+            warnings = [warning.replace(partial, final) for warning in warnings]
         for row in rows:
             row["warnings"] = _joined(warnings)
         return rows
@@ -204,15 +207,28 @@ def _name(source: str) -> str:
     return source.rstrip("/").rsplit("/", 1)[-1] or "log"
 
 
-def _local_copy(source: str, scratch: Path) -> Path:
-    """A path the replay can map: a local file as it is, a remote one copied."""
+def local_file(source: str) -> Path | None:
+    """The file here that a log names: a path as it is, a ``file://`` URL's path (or any
+    URL whose file system is the local one); None for a remote one."""
     if not is_url(source):
         return Path(source)
     import fsspec  # (only for URLs: part of mavest[fleet])
 
+    try:
+        fs, path = fsspec.core.url_to_fs(source)
+    except (ImportError, ValueError):  # (a backend not installed, no such protocol)
+        return None
+    return Path(path) if "file" in fs.protocol else None  # (the names it goes by)
+
+
+def _local_copy(source: str, scratch: Path) -> Path:
+    """A path the replay can map: a local file as it is, a remote one copied."""
+    here = local_file(source)
+    if here is not None:
+        return here
+    import fsspec
+
     fs, path = fsspec.core.url_to_fs(source)
-    if "file" in fs.protocol:  # (a tuple of the names it goes by)
-        return Path(path)
     local = scratch / _name(source)
     try:
         with fs.open(path, "rb") as remote, local.open("wb") as copy:

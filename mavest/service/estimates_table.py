@@ -144,6 +144,7 @@ class EstimatesTable:
         block_rows = block_rows or BLOCK_ROWS
         self.rows = 0  # rows in the file
         self.error: str | None = None  # why writing stopped, if it did
+        self.published = False  # the file is there under its name (or written into)
         self._temporary = partial_path(self.path)
         self._size = block_rows
         self._t = np.empty(block_rows)
@@ -351,6 +352,7 @@ class EstimatesTable:
         a device or a FIFO: :func:`paths.publish`)."""
         try:
             publish(self._temporary, self.path)
+            self.published = True
         except OSError as error:
             with contextlib.suppress(OSError):
                 self._temporary.unlink(missing_ok=True)

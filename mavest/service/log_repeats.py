@@ -15,6 +15,10 @@ import logging
 import time
 from dataclasses import dataclass
 
+# A record with this attribute true (``extra={UNLIMITED: True}``) always passes: a line
+# of a list whose lines share a template but not a subject (each failed log of a fleet).
+UNLIMITED = "unlimited"
+
 
 @dataclass
 class _Window:
@@ -34,6 +38,8 @@ class RepeatLimiter(logging.Filter):
         self._windows: dict[tuple[str, int, str], _Window] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
+        if getattr(record, UNLIMITED, False):  # (a list of distinct things, each once)
+            return True
         key = (record.name, record.levelno, str(record.msg))
         now = time.monotonic()
         window = self._windows.get(key)

@@ -120,6 +120,8 @@ class RunReport:
     outputs: Outputs = field(default_factory=Outputs)
     # an output file that stopped early (disk full, write error) → why
     output_errors: dict[Path, str] = field(default_factory=dict)
+    # of those, the ones of which nothing was kept (a Parquet table cannot stop early)
+    unwritten: set[Path] = field(default_factory=set)
     # of ``elapsed``, the seconds spent compiling the filter (a first run): not throughput
     compile_seconds: float = 0.0
     # the replay was over and a served viewer went on serving it until the stop
@@ -273,6 +275,12 @@ class _Opened:
         """The run failed: no table (:meth:`close` still closes the rest)."""
         if self.table is not None:
             self.table.discard()
+
+    def unwritten(self) -> set[Path]:
+        """Output files that stopped early and of which nothing was kept."""
+        if self.table is not None and self.table.error is not None and not self.table.published:
+            return {self.table.path}
+        return set()
 
     def errors(self) -> dict[Path, str]:
         """Output files that stopped early, and why."""
@@ -455,7 +463,7 @@ async def replay(
         opened.close()
     if not report.lingered:
         _fill_replay_report(report, source, opened, start)
-    report.output_errors = opened.errors()
+    report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
     return report
 
 
@@ -608,7 +616,7 @@ def _open_log(path: str | Path, config: ServiceConfig) -> _Source:
 
 def _fill_replay_report(report: RunReport, source: _Source, opened: _Opened, start: float) -> None:
     reader, damage = source.reader, source.damage
-    report.output_errors = opened.errors()
+    report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
     report.elapsed = time.perf_counter() - start + source.loading
     report.records = reader.stats.records
     report.bad_records = reader.stats.bad_crc + damage.bad_records
@@ -724,7 +732,7 @@ async def run_live(
             for link in links:
                 link.close()
             opened.close()
-    report.output_errors = opened.errors()
+    report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
     report.elapsed = time.perf_counter() - start
     report.records = pipeline.messages_in
     report.bad_records = pipeline.bad_packets
@@ -1056,8 +1064,12 @@ def format_summary(report: RunReport) -> str:
         ("Rerun recording", report.outputs.rrd),
         ("estimates table", report.outputs.estimates),
     ):
-        if path is not None:
-            error = report.output_errors.get(Path(path))
+        if path is None:
+            continue
+        error = report.output_errors.get(Path(path))
+        if Path(path) in report.unwritten:
+            lines.append(f"  no {label} written: {error}")
+        else:
             stopped = f", stopped early: {error}" if error else ""
             lines.append(f"  wrote {path} ({label}{stopped})")
     return "\n".join(lines)
