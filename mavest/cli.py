@@ -966,8 +966,8 @@ def build_parser() -> argparse.ArgumentParser:
     fleet.add_argument(
         "--scheduler",
         metavar="ADDRESS",
-        help="an existing Dask cluster's scheduler, tcp://HOST:PORT (default: a local "
-        "cluster on this machine)",
+        help="an existing Dask cluster's scheduler, tcp://HOST:PORT, or tls://HOST:PORT "
+        "with Dask's TLS settings (default: a local cluster on this machine)",
     )
     fleet.add_argument(
         "--workers",
