@@ -62,6 +62,42 @@ C_IMU_FRD = np.diag([1.0, -1.0, -1.0])
 C_NED_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 
+#: The BROAD trials mavest's defaults (and its tools' choices) were chosen on: figures on
+#: these are in-sample. Any other trial (the dataset has 39) is one they never saw.
+TUNED_ON = frozenset(
+    {
+        "02_undisturbed_slow_rotation_B",
+        "03_undisturbed_slow_rotation_C",
+        "05_undisturbed_slow_rotation_with_breaks_B",
+        "07_undisturbed_fast_rotation_B",
+        "09_undisturbed_fast_rotation_with_breaks_B",
+        "10_undisturbed_slow_translation_A",
+        "11_undisturbed_slow_translation_B",
+        "12_undisturbed_slow_translation_C",
+        "14_undisturbed_slow_translation_with_breaks_B",
+        "15_undisturbed_fast_translation_A",
+        "16_undisturbed_fast_translation_B",
+        "18_undisturbed_fast_translation_with_breaks_B",
+        "24_disturbed_tapping_A",
+        "25_disturbed_tapping_B",
+        "27_disturbed_phone_vibration_B",
+        "30_disturbed_stationary_magnet_C",
+        "31_disturbed_stationary_magnet_D",
+        "32_disturbed_attached_magnet_1cm",
+        "33_disturbed_attached_magnet_2cm",
+        "34_disturbed_attached_magnet_3cm",
+        "35_disturbed_attached_magnet_4cm",
+        "36_disturbed_attached_magnet_5cm",
+    }
+)
+
+
+def tuned_on(name: str) -> bool:
+    """Whether mavest's defaults were chosen on the BROAD trial of this name
+    (:data:`TUNED_ON`): its figures are then in-sample."""
+    return name in TUNED_ON
+
+
 @dataclass(frozen=True)
 class BroadTrial:
     """One BROAD trial in mavest conventions (FRD body, NED world, SI, float64).
