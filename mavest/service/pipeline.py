@@ -168,6 +168,10 @@ class StreamStats:
     # the last one taken: EstimatorConfig.update_rate)
     mag_taken: int = 0
     mag_used: int = 0  # of those, the ones that corrected (or set) heading
+    # the samples at which a gravity update was due, and of those the ones whose
+    # (low-passed) specific force was too far from g to be taken as gravity
+    updates: int = 0
+    accel_far_from_g: int = 0
     gps_aided: int = 0  # samples with the vehicle's acceleration from GPS removed
     airspeed_aided: int = 0  # samples with the centripetal term from airspeed removed
     answered: int = 0  # ATTITUDE messages sent for this stream
@@ -1205,13 +1209,16 @@ def _count(mask: Any) -> int:
 
 def count_estimated(stats: StreamStats, flags: Any, mag_usable: Any, mag_used: Any) -> None:
     """Count estimated steps: one step's flags and whether its sample had a usable
-    magnetometer reading and the step used it, or a block's arrays of them. A reading
+    magnetometer reading and the step used it, or a block's arrays of them; the gravity
+    updates due, and those the accelerometer's norm kept out. A reading
     is taken unless the step set it aside or it came between the magnetometer's
     updates (MAG_NOT_TAKEN), or the filter had no attitude to take it into
     (NOT_INITIALISED: an accelerometer it cannot start on); the GPS-aided ones had
     the vehicle's acceleration removed (ACCEL_AIDED)."""
     stats.estimated += 1 if isinstance(mag_usable, bool) else len(mag_usable)
     stats.gps_aided += _count((flags & StepFlags.ACCEL_AIDED) != 0)
+    stats.updates += _count((flags & (StepFlags.BETWEEN_UPDATES | StepFlags.NOT_INITIALISED)) == 0)
+    stats.accel_far_from_g += _count((flags & StepFlags.ACCEL_REJECTED_NORM) != 0)
     taken = mag_usable & ((flags & (MAG_NOT_TAKEN | StepFlags.NOT_INITIALISED)) == 0)
     stats.mag_usable += _count(mag_usable)
     stats.mag_taken += _count(taken)
@@ -1298,3 +1305,14 @@ def usable_mag(mag: Axes) -> Any:
 
 def _who(vehicle: Vehicle) -> str:
     return f"vehicle {vehicle.system}/{vehicle.component}"
+
+
+# Beyond this share of the gravity updates kept out by the accelerometer's norm, a run
+# says so: tilt was then seldom observed (a vehicle always accelerating, or an attitude
+# lost to a gyro offset far beyond the filter's prior, which spins the low-passed force)
+ACCEL_FAR_SHARE = 0.5
+
+
+def accel_far_from_g_share(stats: StreamStats) -> float:
+    """The share of a stream's gravity updates that its accelerometer's norm kept out."""
+    return stats.accel_far_from_g / stats.updates if stats.updates else 0.0

@@ -42,7 +42,14 @@ from mavest.paths import check_outputs
 from mavest.service import bulk
 from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import EstimatesTable, table_format
-from mavest.service.pipeline import EstimateSink, Pipeline, Stream, heartbeats_after
+from mavest.service.pipeline import (
+    ACCEL_FAR_SHARE,
+    EstimateSink,
+    Pipeline,
+    Stream,
+    accel_far_from_g_share,
+    heartbeats_after,
+)
 from mavest.service.signals import stop_on_signals
 from mavest.service.smoothing import SmoothedStream, smooth_stream
 from mavest.viz.viewer import (
@@ -464,7 +471,25 @@ async def replay(
     if not report.lingered:
         _fill_replay_report(report, source, opened, start)
     report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
+    _warn_of_accelerometers_far_from_g(pipeline)
     return report
+
+
+def _warn_of_accelerometers_far_from_g(pipeline: Pipeline) -> None:
+    """A warning for each stream whose accelerometer was mostly kept out of its gravity
+    updates (:data:`~mavest.service.pipeline.ACCEL_FAR_SHARE`): its tilt is then the
+    gyro's alone, its σ says how unsure (the summary says how often)."""
+    for stream in pipeline.streams.values():
+        share = accel_far_from_g_share(stream.stats)
+        if share > ACCEL_FAR_SHARE:
+            log.warning(
+                "%s: the accelerometer was too far from g to be taken as gravity at %.0f %% "
+                "of the updates: tilt seldom observed (a vehicle always accelerating, or "
+                "an attitude lost to a gyro offset beyond the filter's prior, "
+                "estimator.initial_bias_sigma)",
+                stream.key,
+                100.0 * share,
+            )
 
 
 async def _pause(seconds: float, stop: asyncio.Event | None) -> None:
@@ -733,6 +758,7 @@ async def run_live(
                 link.close()
             opened.close()
     report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
+    _warn_of_accelerometers_far_from_g(pipeline)
     report.elapsed = time.perf_counter() - start
     report.records = pipeline.messages_in
     report.bad_records = pipeline.bad_packets
@@ -992,6 +1018,11 @@ def format_summary(report: RunReport) -> str:
             )
         )
         lines.append("    filter health: " + (", ".join(health) if health else "no resets"))
+        if accel_far_from_g_share(stats) > ACCEL_FAR_SHARE:
+            lines.append(
+                f"    accelerometer too far from g at {100 * accel_far_from_g_share(stats):.0f} % "
+                f"of the {stats.updates} gravity updates: tilt seldom observed"
+            )
         if stats.accel_wrong_unit:
             problem = stream.estimator.accel_unit_problem or "accelerometer not in m/s²"
             lines.append(
