@@ -444,3 +444,39 @@ def test_an_accelerometer_seldom_taken_as_gravity_is_said(
     quiet = asyncio.run(replay(imu_log().save(tmp_path / "rest.bin"), ServiceConfig()))
     assert quiet.streams[0].stats.accel_far_from_g == 0
     assert "too far from g" not in caplog.text + quiet.summary()
+
+
+def test_a_log_stamped_with_unix_time_is_scored_against_its_autopilot(tmp_path: Path) -> None:
+    """A PX4 simulator stamps its log with Unix time (1.7e15 µs): ATTITUDE's 32-bit
+    time_boot_ms wrapped, so the autopilot's attitude never met an IMU sample and the
+    replay said nothing of it. Every message's time now counts from the log's first."""
+    epoch_us = 1_710_773_350_354_000
+    log = DataflashWriter()
+    log.define(200, "IMU", IMU_FORMAT, IMU_COLUMNS)
+    log.define(201, "ATT", "Qccc", "TimeUS,Roll,Pitch,Yaw")
+    for k in range(400 * 20):  # 20 s at rest at 400 Hz, the autopilot's attitude at 10 Hz
+        t = epoch_us + STEP_US * k
+        log.record("IMU", t, 0.0, 0.0, 0.0, 0.0, 0.0, -9.80665, 0)
+        if k % 40 == 0:
+            log.record("ATT", t, 0, 0, 9000)
+    path = log.save(tmp_path / "unix_time.bin")
+    config = ServiceConfig().replace(input={"settle_time": 1.0})
+    report = asyncio.run(replay(path, config, progress=False))
+    (stream,) = report.streams
+    scored = stream.vs_autopilot.result()
+    assert scored.count > 150 and scored.inclination_rms < 0.5, scored
+
+
+def test_a_dataflash_log_after_a_loggers_own_header_is_read(tmp_path: Path) -> None:
+    """A board's logger may write 64 bytes of its own before the DataFlash log (seen on
+    an ArduCopter 4.6.3 log): refused before as "neither an ArduPilot DataFlash log nor
+    a PX4 ULog"; read now, those bytes counted as damage."""
+    path = tmp_path / "00000001.BIN"
+    path.write_bytes(bytes(range(64)) + bytes(imu_log().out))
+    report = asyncio.run(replay(path, ServiceConfig(), progress=False))
+    assert report.streams[0].stats.estimated == 1000
+    assert report.skipped_bytes == 64
+    # noise alone is still refused, in its own words
+    (tmp_path / "noise.bin").write_bytes(bytes(range(256)) * 64)
+    with pytest.raises(OnboardLogError, match="neither an ArduPilot DataFlash log"):
+        asyncio.run(replay(tmp_path / "noise.bin", ServiceConfig(), progress=False))

@@ -9,6 +9,7 @@ a one-line message; a damaged but partly readable one loads, its damage counted 
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from mavest.onboard.errors import OnboardLogError
@@ -28,6 +29,12 @@ __all__ = [
 # a ULog with its magic and a version byte after it.
 _DATAFLASH_MAGIC = bytes([0xA3, 0x95, 0x80])
 _ULOG_MAGIC = b"ULog\x01\x12\x35"
+# That first record whole: FMT (128) of length 89 named "FMT". Found further in (after a
+# logger's own header), it marks a DataFlash log as surely as at the start: nine bytes
+# that noise, or another format's data, does not make.
+_DATAFLASH_FMT_OF_FMT = _DATAFLASH_MAGIC + bytes([0x80, 89]) + b"FMT\x00"
+# How far into a file the DataFlash start is looked for.
+_DATAFLASH_SEARCH = 1 << 16
 
 
 def detect(path: Path | str) -> str | None:
@@ -47,12 +54,24 @@ def detect(path: Path | str) -> str | None:
     return None
 
 
+def _dataflash_further_in(path: Path | str) -> bool:
+    """Whether a DataFlash log's first record comes within the file's first
+    :data:`_DATAFLASH_SEARCH` bytes, not at its start (a board's logger may write a
+    header of its own first)."""
+    with contextlib.suppress(OSError), Path(path).open("rb") as file:
+        return _DATAFLASH_FMT_OF_FMT in file.read(_DATAFLASH_SEARCH)
+    return False
+
+
 def load(path: Path | str) -> OnboardLog:
-    """Read an onboard log of either format, chosen by content.
+    """Read an onboard log of either format, chosen by content (a DataFlash log also when
+    it starts within the file's first 64 KiB, after bytes of another kind).
 
     OnboardLogError (one line) for a file that is neither format, or holds no IMU samples.
     """
     kind = detect(path)
+    if kind is None and _dataflash_further_in(path):
+        kind = "dataflash"  # (its reader skips what comes before, counted as damage)
     if kind == "dataflash":
         from mavest.onboard.dataflash import load_dataflash
 

@@ -9,7 +9,9 @@ reads a tlog's. Nothing about the estimate is decided here.
 What each sample becomes (MAVLink 2, ardupilotmega dialect, all from one
 ``system``/``component``):
 
-* an IMU sample: HIGHRES_IMU, ``time_usec`` its boot time, ``id`` its instance,
+* an IMU sample: HIGHRES_IMU, ``time_usec`` its boot time (from the log's first
+  millisecond when the log's clock is beyond ``time_boot_ms``'s 49.7 days: a PX4
+  simulator's Unix time; every message's own time alike), ``id`` its instance,
   accelerometer m/s², gyro rad/s, and the magnetometer (gauss) of the latest
   field sample at or before it: of the same instance, or else of the lowest
   instance logged (every magnetometer is logged in the body frame; an autopilot
@@ -92,22 +94,23 @@ def to_tlog_bytes(log: OnboardLog, system: int = 1, component: int = 1) -> bytes
     """The tlog of ``log``: every sample as a MAVLink 2 record, in time order (see the
     module's docstring for what each becomes). The same log gives the same bytes."""
     clock = _Clock(log)
+    base = _boot_base(log)
     parts: list[tuple[str, np.ndarray, np.ndarray]] = []  # (kind, record clock µs, payloads)
     for stream in log.imus:
         t = clock.of(stream.t_us, stream.restarts)
-        parts.append(("HIGHRES_IMU", t, _highres_imu(log, stream, t, clock)))
+        parts.append(("HIGHRES_IMU", t, _highres_imu(log, stream, t, clock, base)))
     if log.attitude is not None and len(log.attitude.t_us):
-        parts.append(("ATTITUDE", clock.series(log.attitude), _attitude(log.attitude)))
+        parts.append(("ATTITUDE", clock.series(log.attitude), _attitude(log.attitude, base)))
     if log.truth is not None and len(log.truth.t_us):
         parts.append(("SIMSTATE", clock.series(log.truth), _simstate(log.truth)))
     if log.gps_fix is not None and len(log.gps_fix.t_us):
-        parts.append(("GPS_RAW_INT", clock.series(log.gps_fix), _gps_raw_int(log.gps_fix)))
+        parts.append(("GPS_RAW_INT", clock.series(log.gps_fix), _gps_raw_int(log.gps_fix, base)))
     if log.gps_velocity is not None and len(log.gps_velocity.t_us):
         parts.append(
             (
                 "GLOBAL_POSITION_INT",
                 clock.series(log.gps_velocity),
-                _global_position(log.gps_velocity),
+                _global_position(log.gps_velocity, base),
             )
         )
     if log.airspeed is not None and len(log.airspeed.t_us):
@@ -241,11 +244,13 @@ def _mag_for(log: OnboardLog, instance: int) -> Series | None:
     return log.mag[min(log.mag)] if log.mag else None
 
 
-def _highres_imu(log: OnboardLog, stream: Any, t: np.ndarray, clock: _Clock) -> np.ndarray:
+def _highres_imu(
+    log: OnboardLog, stream: Any, t: np.ndarray, clock: _Clock, base: int
+) -> np.ndarray:
     """``t``: the samples' record clock, on which each is paired with a field sample."""
     n = len(stream.t_us)
     p = _payloads("HIGHRES_IMU", n)
-    p["time_usec"] = stream.t_us
+    p["time_usec"] = stream.t_us - base
     for k, axis in enumerate("xyz"):
         p[f"{axis}acc"] = stream.accel[:, k]
         p[f"{axis}gyro"] = stream.gyro[:, k]
@@ -266,8 +271,20 @@ def _highres_imu(log: OnboardLog, stream: Any, t: np.ndarray, clock: _Clock) -> 
     return p
 
 
-def _time_boot_ms(t_us: np.ndarray) -> np.ndarray:
-    return (np.asarray(t_us, dtype=np.int64) // 1000) & 0xFFFFFFFF
+def _boot_base(log: OnboardLog) -> int:
+    """What the messages' own times (``time_usec``, ``time_boot_ms``) are counted from: 0,
+    the log's boot clock as it is; or, for a clock beyond what ``time_boot_ms`` holds
+    (2³² ms, 49.7 days: a PX4 simulator stamps its log with Unix time), the log's first
+    whole millisecond, so that every message's time is from there and all still agree
+    (an ATTITUDE's 32-bit time wrapped otherwise, never matching the IMU's)."""
+    times = [s.t_us for s in _every_series(log) if len(s.t_us)]
+    if not times or max(int(t.max()) for t in times) // 1000 <= 0xFFFFFFFF:
+        return 0
+    return min(int(t.min()) for t in times) // 1000 * 1000
+
+
+def _time_boot_ms(t_us: np.ndarray, base: int) -> np.ndarray:
+    return ((np.asarray(t_us, dtype=np.int64) - base) // 1000) & 0xFFFFFFFF
 
 
 def _euler_into(p: np.ndarray, values: np.ndarray) -> None:
@@ -275,9 +292,9 @@ def _euler_into(p: np.ndarray, values: np.ndarray) -> None:
         p[name] = values[:, k]
 
 
-def _attitude(series: Series) -> np.ndarray:
+def _attitude(series: Series, base: int) -> np.ndarray:
     p = _payloads("ATTITUDE", len(series.t_us))
-    p["time_boot_ms"] = _time_boot_ms(series.t_us)
+    p["time_boot_ms"] = _time_boot_ms(series.t_us, base)
     _euler_into(p, series.values)
     return p
 
@@ -288,9 +305,9 @@ def _simstate(series: Series) -> np.ndarray:
     return p
 
 
-def _gps_raw_int(series: Series) -> np.ndarray:
+def _gps_raw_int(series: Series, base: int) -> np.ndarray:
     p = _payloads("GPS_RAW_INT", len(series.t_us))
-    p["time_usec"] = series.t_us
+    p["time_usec"] = series.t_us - base
     p["fix_type"] = np.clip(series.values[:, 0], 0, 255).astype(np.uint8)
     for name in ("eph", "epv", "vel", "cog"):
         p[name] = _UINT16_UNKNOWN
@@ -298,9 +315,9 @@ def _gps_raw_int(series: Series) -> np.ndarray:
     return p
 
 
-def _global_position(series: Series) -> np.ndarray:
+def _global_position(series: Series, base: int) -> np.ndarray:
     p = _payloads("GLOBAL_POSITION_INT", len(series.t_us))
-    p["time_boot_ms"] = _time_boot_ms(series.t_us)
+    p["time_boot_ms"] = _time_boot_ms(series.t_us, base)
     cm_s = np.clip(np.rint(series.values * 100.0), -_INT16_LIMIT, _INT16_LIMIT)
     for k, name in enumerate(("vx", "vy", "vz")):
         p[name] = cm_s[:, k]

@@ -599,18 +599,21 @@ def _open_log(path: str | Path, config: ServiceConfig) -> _Source:
     if path.is_file():
         with contextlib.suppress(OnboardLogError):  # unreadable: TlogReader.open says why
             kind = detect(path)
+    began = time.perf_counter()
     if kind is None:
         try:
             reader = TlogReader.open(path, REPLAY_MESSAGES)
         except TlogError:
-            if path.suffix.lower() in _ONBOARD_SUFFIXES and path.is_file():
-                load(path)  # refuses it (OnboardLogError), in its own words
-            raise
-        if path.suffix.lower() in _ONBOARD_SUFFIXES:
-            log.info("%s: named as an onboard log, holds a tlog: read as one", path.name)
-        return _Source(reader, str(path), LogDamage(), "packets", 0.0, _RAISE_STREAM_RATE)
-    began = time.perf_counter()
-    onboard = load(path)
+            if not (path.suffix.lower() in _ONBOARD_SUFFIXES and path.is_file()):
+                raise
+            # an onboard log after bytes of another kind, or else refused in its own words
+            onboard = load(path)
+        else:
+            if path.suffix.lower() in _ONBOARD_SUFFIXES:
+                log.info("%s: named as an onboard log, holds a tlog: read as one", path.name)
+            return _Source(reader, str(path), LogDamage(), "packets", 0.0, _RAISE_STREAM_RATE)
+    else:
+        onboard = load(path)
     data = to_tlog_bytes(onboard)
     if onboard.notes:  # one line: lines of one template are rate-limited (log_repeats)
         log.info("%s: %s", path.name, "; ".join(onboard.notes))
