@@ -287,6 +287,30 @@ def test_a_declination_logged_by_a_ground_station_applies_to_its_vehicle(
     assert any(line.startswith(said) for line in mavest_log), mavest_log
 
 
+@pytest.mark.parametrize("autodec_first", [True, False])
+def test_a_declination_the_autopilot_may_have_replaced_is_said_so(
+    autodec_first: bool, mavest_log: list[str]
+) -> None:
+    """With COMPASS_AUTODEC on, ArduPilot works the declination out from its position
+    after a fix and sends no new COMPASS_DEC: the one logged at connection may be stale
+    (a real tlog's was −9.19° where the vehicle's was 11.4°: yaw 20° off). It is used,
+    and said to be doubtful, once, whichever parameter comes first."""
+    pipeline = Pipeline(ServiceConfig())
+    ground = MAVLink(None, srcSystem=1, srcComponent=190)
+    params = [(b"COMPASS_DEC", -0.16), (b"COMPASS_AUTODEC", 1.0)]
+    for name, value in (params[::-1] if autodec_first else params) * 2:
+        message = ground.param_value_encode(name, value, 9, 885, 103)
+        pipeline.on_message(ground.decode(bytearray(message.pack(ground))), 0)
+    doubtful = [line for line in mavest_log if "COMPASS_AUTODEC is on" in line]
+    assert len(doubtful) == 1 and "(-9.17°) may be stale" in doubtful[0], mavest_log
+    # off: the parameter is the declination used, nothing to say
+    quiet = Pipeline(ServiceConfig())
+    for name, value in ((b"COMPASS_AUTODEC", 0.0), (b"COMPASS_DEC", 0.2)):
+        message = ground.param_value_encode(name, value, 9, 885, 103)
+        quiet.on_message(ground.decode(bytearray(message.pack(ground))), 0)
+    assert len([line for line in mavest_log if "COMPASS_AUTODEC" in line]) == 1
+
+
 @pytest.mark.parametrize("command", ["run", "replay"])
 def test_out_tlog_help_says_what_the_file_holds(
     command: str, capsys: pytest.CaptureFixture[str]

@@ -321,6 +321,8 @@ class Pipeline:
         self._not_followed: set[StreamKey] = set()
         self.ignored_imu: dict[int, int] = {}  # IMU messages from systems not followed
         self._declinations: dict[int, float] = {}  # rad, each system's COMPASS_DEC
+        self._autodec: dict[int, bool] = {}  # each system's COMPASS_AUTODEC, when heard
+        self._autodec_warned: set[int] = set()
         # requests to mavest already reported in the log, by (requester, message)
         self._requests_told: set[tuple[int, int, str]] = set()
         # until the first IMU stream: the messages heard, by (system, component), so that
@@ -431,6 +433,9 @@ class Pipeline:
                 )
         elif name == "PARAM_VALUE" and message.param_id == "COMPASS_DEC":
             self._on_declination(system, component, float(message.param_value))
+        elif name == "PARAM_VALUE" and message.param_id == "COMPASS_AUTODEC":
+            self._autodec[system] = message.param_value != 0.0
+            self._warn_of_autodec(system)
         elif name in AIDING_FIELDS:
             vehicle = self.vehicles.get((system, component))
             if vehicle is not None:
@@ -694,6 +699,25 @@ class Pipeline:
             if due.shape[0]:
                 self._answer(stream, t, estimate, euler_tuple, gyro, sample.mavlink1)
 
+    def _warn_of_autodec(self, system: int) -> None:
+        """Once per system: a COMPASS_DEC taken while COMPASS_AUTODEC is on. The autopilot
+        then works the declination out from its position, after a GPS fix, and sends no
+        new value: the one a ground station logged at connection may be stale (tlogs
+        seen 20° off)."""
+        if (
+            self._autodec.get(system)
+            and system in self._declinations
+            and system not in self._autodec_warned
+        ):
+            self._autodec_warned.add(system)
+            log.warning(
+                "system %d: COMPASS_AUTODEC is on: the autopilot takes the declination from "
+                "its position, and the COMPASS_DEC used (%.2f°) may be stale (if yaw is off "
+                "by a constant, set estimator.compass_dec)",
+                system,
+                math.degrees(self._declinations[system]),
+            )
+
     def _on_declination(self, system: int, component: int, declination: float) -> None:
         """A system's declination (its autopilot's COMPASS_DEC, whichever component
         reports it: ground stations log the vehicle's parameters under their own
@@ -707,6 +731,7 @@ class Pipeline:
         ):
             return
         self._declinations[system] = declination
+        self._warn_of_autodec(system)
         vehicles = [v for v in self.vehicles.values() if v.system == system]
         for vehicle in vehicles:
             vehicle.declination = declination
