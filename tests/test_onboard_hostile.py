@@ -480,3 +480,21 @@ def test_a_dataflash_log_after_a_loggers_own_header_is_read(tmp_path: Path) -> N
     (tmp_path / "noise.bin").write_bytes(bytes(range(256)) * 64)
     with pytest.raises(OnboardLogError, match="neither an ArduPilot DataFlash log"):
         asyncio.run(replay(tmp_path / "noise.bin", ServiceConfig(), progress=False))
+
+
+def test_a_log_too_short_to_score_says_so(tmp_path: Path) -> None:
+    """A log shorter than the settle time (10 s) scored nothing and said nothing of the
+    autopilot's attitudes it holds: the summary now says none was scored, and why."""
+    log = DataflashWriter()
+    log.define(200, "IMU", IMU_FORMAT, IMU_COLUMNS)
+    log.define(201, "ATT", "Qccc", "TimeUS,Roll,Pitch,Yaw")
+    for k in range(400 * 5):  # 5 s
+        log.record("IMU", START_US + STEP_US * k, 0.0, 0.0, 0.0, 0.0, 0.0, -9.80665, 0)
+        if k % 40 == 0:
+            log.record("ATT", START_US + STEP_US * k, 0, 0, 9000)
+    path = log.save(tmp_path / "short.bin")
+    summary = asyncio.run(replay(path, ServiceConfig(), progress=False)).summary()
+    assert "vs autopilot ATTITUDE: not scored: none of its 50 attitudes came 10 s" in summary
+    scored = ServiceConfig().replace(input={"settle_time": 1.0})
+    summary = asyncio.run(replay(path, scored, progress=False)).summary()
+    assert "vs autopilot ATTITUDE after 1 s:" in summary and "not scored" not in summary

@@ -85,6 +85,7 @@ def _state_dtype(history: int) -> np.dtype:
             ("sums", np.float64, (4,)),
             ("count", np.int64),
             ("unmatched", np.int64),
+            ("references", np.int64),  # every reference taken, scored or not
             ("settle_time", np.float64),
             ("max_span", np.float64),
         ]
@@ -132,6 +133,8 @@ def _resolve(s: np.void, t: float, r0: float, r1: float, r2: float) -> None:
 @kernel
 def _add(s: np.void, kind: int, t: float, e0: float, e1: float, e2: float) -> None:
     history = s.ours_t.shape[0]
+    if kind != ESTIMATE:
+        s.references += 1
     if kind == ESTIMATE:
         if s.started == 0:
             s.start = t
@@ -200,6 +203,11 @@ class EulerComparison:
     @property
     def unmatched(self) -> int:
         return int(self._state["unmatched"][0])
+
+    @property
+    def references(self) -> int:
+        """References taken, scored or not (before the settle time, or matching none)."""
+        return int(self._state["references"][0])
 
     def restart(self) -> None:
         """The estimate started again (a reboot): settle again, forget the old timeline."""

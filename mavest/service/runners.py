@@ -1058,22 +1058,28 @@ def format_summary(report: RunReport) -> str:
         )
         settle = pipeline.config.input.settle_time
         smoothed = report.smoothed.get(stream.key)
-        for name, result, smoothed_result in (
+        for name, comparison, smoothed_result in (
             (
                 "truth (SIMSTATE)",
-                stream.vs_truth.result(),
+                stream.vs_truth,
                 smoothed.vs_truth if smoothed is not None else None,
             ),
             (
                 "autopilot ATTITUDE",
-                stream.vs_autopilot.result(),
+                stream.vs_autopilot,
                 smoothed.vs_autopilot if smoothed is not None else None,
             ),
         ):
+            result = comparison.result()
             for who, scored in (("", result), ("smoothed ", smoothed_result)):
                 if scored is not None and scored.count:
                     described = scored.describe(stream.estimator.heading_referenced)
                     lines.append(f"    {who}vs {name} after {settle:g} s: {described}")
+            if not result.count and comparison.references:  # (a short log: say why none)
+                lines.append(
+                    f"    vs {name}: not scored: none of its {comparison.references} attitudes "
+                    f"came {settle:g} s or more into the stream and beside its estimates"
+                )
         if smoothed is not None:
             count = (
                 f"{len(smoothed) - smoothed.refused} of {len(smoothed)}"
