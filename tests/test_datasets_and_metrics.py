@@ -241,6 +241,179 @@ def test_broad_conversion_on_a_synthetic_file(tmp_path: Path) -> None:
     field_ned = to_rotation(trial.truth_q[0]).apply(trial.mag[0])[0]
     np.testing.assert_allclose(field_ned, [20.0, 0.0, 40.0], atol=1e-9)
     assert trial.movement.dtype == bool and trial.movement.sum() == 3
+    assert trial.filled == 0
+
+
+def write_broad_file(
+    path: Path,
+    n: int = 400,
+    *,
+    rate: float = 100.0,
+    seed: int = 0,
+    drop: tuple[str, ...] = (),
+    **arrays: np.ndarray,
+) -> Path:
+    """A BROAD-format trial: the IMU level and still (with noise, ``seed``), its x east
+    (``opt_quat`` identity), moving in its middle half; ``arrays`` replace datasets,
+    ``drop`` leaves datasets or the ``sampling_rate`` attribute out."""
+    import h5py
+
+    rng = np.random.default_rng(seed)
+    movement = np.zeros(n, dtype=bool)
+    movement[n // 4 : 3 * n // 4] = True
+    data = {
+        "imu_gyr": rng.normal(0.0, 0.01, (n, 3)),
+        "imu_acc": np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, 0.05, (n, 3)),
+        "imu_mag": np.array([0.0, 20.0, -40.0]) + rng.normal(0.0, 0.5, (n, 3)),
+        "opt_quat": np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+        "movement": movement,
+    } | arrays
+    with h5py.File(path, "w") as f:
+        if "sampling_rate" not in drop:
+            f.attrs["sampling_rate"] = rate
+        for key, value in data.items():
+            if key not in drop:
+                f[key] = value
+    return path
+
+
+def test_non_finite_imu_samples_are_filled_and_left_out_of_the_scoring(tmp_path: Path) -> None:
+    """Every filter gets the same finite samples (VQF carried one NaN into 80° errors
+    while mavest skipped it); the filled samples are not scored, and counted."""
+    pytest.importorskip("h5py", reason="h5py (dev extra) is needed to read BROAD")
+    from mavest.datasets.broad import C_IMU_FRD, load_trial
+
+    n = 400
+    clean = load_trial(write_broad_file(tmp_path / "01_clean.hdf5", n))
+    assert clean.filled == 0
+    gyr = clean.gyro @ C_IMU_FRD.T  # (back in the IMU frame, as stored)
+    acc = clean.accel @ C_IMU_FRD.T
+    mag = clean.mag @ C_IMU_FRD.T
+    gyr[150, 1] = np.nan  # one axis of one sample, while moving
+    gyr[160:163] = np.inf  # a stretch
+    mag[0] = np.nan  # the first sample: held from the next
+    acc[-2:, 2] = -np.inf  # the last two: held from the one before
+    path = write_broad_file(tmp_path / "02_holes.hdf5", n, imu_gyr=gyr, imu_acc=acc, imu_mag=mag)
+    trial = load_trial(path)
+
+    assert trial.filled == 1 + 3 + 1 + 2
+    for values in (trial.gyro, trial.accel, trial.mag):
+        assert np.all(np.isfinite(values))
+    np.testing.assert_allclose(trial.gyro[150], (clean.gyro[149] + clean.gyro[151]) / 2)
+    for k, i in enumerate(range(160, 163), start=1):  # on the line from 159 to 163
+        expected = clean.gyro[159] + k / 4 * (clean.gyro[163] - clean.gyro[159])
+        np.testing.assert_allclose(trial.gyro[i], expected)
+    np.testing.assert_array_equal(trial.mag[0], clean.mag[1])
+    np.testing.assert_array_equal(trial.accel[-2:], clean.accel[[-3, -3]])
+    untouched = np.ones(n, dtype=bool)
+    untouched[[0, 150, 160, 161, 162, n - 2, n - 1]] = False
+    np.testing.assert_array_equal(trial.gyro[untouched], clean.gyro[untouched])
+    np.testing.assert_array_equal(trial.movement, clean.movement & untouched)
+    assert trial.scored.sum() == clean.scored.sum() - 4  # (0 and the end were at rest)
+
+
+@pytest.mark.parametrize("key", ["imu_gyr", "imu_acc", "imu_mag"])
+def test_a_sensor_without_a_finite_sample_is_an_error(tmp_path: Path, key: str) -> None:
+    pytest.importorskip("h5py", reason="h5py (dev extra) is needed to read BROAD")
+    from mavest.datasets.broad import BroadFileError, load_trial
+
+    path = write_broad_file(tmp_path / "01_blank.hdf5", **{key: np.full((400, 3), np.nan)})
+    with pytest.raises(BroadFileError, match=f"{key} has no finite sample"):
+        load_trial(path)
+
+
+def _truncated(path: Path) -> None:
+    write_broad_file(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+BAD_FILES = {
+    "truncated": (_truncated, "cannot be read as HDF5"),
+    "empty": (lambda path: path.write_bytes(b""), "cannot be read as HDF5"),
+    "text": (lambda path: path.write_text("not hdf5\n"), "cannot be read as HDF5"),
+    "broken link": (lambda path: path.symlink_to(path.parent / "absent"), "not a readable file"),
+    "no rate": (lambda path: write_broad_file(path, drop=("sampling_rate",)), "sampling_rate"),
+    "rate 0": (lambda path: write_broad_file(path, rate=0.0), "not a rate in Hz"),
+    "no magnetometer": (lambda path: write_broad_file(path, drop=("imu_mag",)), "'imu_mag'"),
+    "short movement": (
+        lambda path: write_broad_file(path, movement=np.ones(399, dtype=bool)),
+        "movement is bool (399,), not numbers shaped (400,)",
+    ),
+    "short truth": (
+        lambda path: write_broad_file(path, opt_quat=np.ones((300, 4))),
+        "opt_quat is float64 (300, 4)",
+    ),
+    "text gyro": (lambda path: write_broad_file(path, imu_gyr=np.full((400, 3), b"x")), "imu_gyr"),
+    "no samples": (
+        lambda path: write_broad_file(
+            path, imu_gyr=np.zeros((0, 3)), imu_acc=np.zeros((0, 3)), imu_mag=np.zeros((0, 3))
+        ),
+        "no samples",
+    ),
+}
+
+
+@pytest.mark.parametrize("kind", list(BAD_FILES))
+def test_a_bad_file_is_one_error_naming_the_file(tmp_path: Path, kind: str) -> None:
+    """Truncated, unrelated or misshaped files raised OSError, KeyError or (later)
+    IndexError: now one error type, one line naming the file and what is wrong."""
+    pytest.importorskip("h5py", reason="h5py (dev extra) is needed to read BROAD")
+    from mavest.datasets.broad import BroadFileError, load_trial
+
+    make, what = BAD_FILES[kind]
+    path = tmp_path / "03_bad.hdf5"
+    make(path)
+    with pytest.raises(BroadFileError) as raised:
+        load_trial(path)
+    message = str(raised.value)
+    assert "\n" not in message and message.startswith(f"{path}: ") and what in message
+
+
+def test_load_trials_leaves_out_bad_files_and_copies_with_a_line(tmp_path: Path) -> None:
+    """One bad file or a second copy of a recording cost the run: now each is left out
+    with one line and the others load (a copy would fall in both halves of a split)."""
+    pytest.importorskip("h5py", reason="h5py (dev extra) is needed to read BROAD")
+    from mavest.datasets.broad import list_trials, load_trials
+
+    write_broad_file(tmp_path / "02_a.hdf5", seed=2)
+    (tmp_path / "02_a_copy.hdf5").write_bytes((tmp_path / "02_a.hdf5").read_bytes())
+    (tmp_path / "03_b.HDF5").write_bytes(b"")  # (the suffix in any case)
+    write_broad_file(tmp_path / "04_still.hdf5", seed=4, movement=np.zeros(400, dtype=bool))
+    gyr = np.random.default_rng(5).normal(0.0, 0.01, (400, 3))
+    gyr[7] = np.nan
+    write_broad_file(tmp_path / "05_hole.hdf5", seed=5, imu_gyr=gyr)
+    (tmp_path / "notes.txt").write_text("not a trial")
+    paths = list_trials(tmp_path)
+    assert [p.name for p in paths] == [
+        "02_a.hdf5",  # (a name before its longer variants)
+        "02_a_copy.hdf5",
+        "03_b.HDF5",
+        "04_still.hdf5",
+        "05_hole.hdf5",
+    ]
+
+    lines: list[str] = []
+    names = [t.name for t in load_trials(paths, lines.append)]
+    assert names == ["02_a", "04_still", "05_hole"]
+    assert lines == [
+        "02_a_copy: the same recording as 02_a; left out",
+        f"{tmp_path / '03_b.HDF5'}: cannot be read as HDF5 (Unable to synchronously open file "
+        "(file signature not found)); left out",
+        "05_hole: 1 sample(s) with a non-finite IMU value filled by interpolation and not scored",
+    ]
+    lines.clear()
+    names = [t.name for t in load_trials(paths, lines.append, scored_only=True)]
+    assert names == ["02_a", "05_hole"]
+    assert "04_still: nothing to score (no movement sample with known truth); left out" in lines
+
+
+def test_trial_labels_are_numbers_only_when_they_name_the_trials() -> None:
+    from mavest.datasets.broad import trial_labels
+
+    assert trial_labels(["02_a", "10_b"]) == ["02", "10"]
+    for names in (["lab_recording_A", "02_a"], ["7_single", "02_a"], ["02_a", "02_a_copy"]):
+        assert trial_labels(names) == names
 
 
 # --------------------------------------------------------------------------

@@ -75,3 +75,32 @@ def test_exits_2_with_one_line_without_broad(
     assert tool.main([]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("motion_prior: ")
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_a_trial_with_nothing_to_score_or_a_bad_file_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A trial without movement printed a row of NaN and RuntimeWarnings; a bad file
+    ended the run in a traceback."""
+    pytest.importorskip("h5py", reason="h5py (dev extra) is needed to read BROAD")
+    from test_datasets_and_metrics import write_broad_file
+
+    broad = tmp_path / "broad"
+    broad.mkdir()
+    write_broad_file(broad / "01_moving.hdf5", 2000, seed=1)
+    write_broad_file(broad / "02_still.hdf5", 2000, seed=2, movement=np.zeros(2000, dtype=bool))
+    (broad / "03_broken.hdf5").write_bytes(b"")
+    monkeypatch.setenv(DATA_ENV_VAR, str(tmp_path))
+    assert tool.main([]) == 0
+    captured = capsys.readouterr()
+    rows = [line for line in captured.out.splitlines() if line.startswith("| 0")]
+    assert len(rows) == 1 and rows[0].startswith("| 01_moving |") and "nan" not in rows[0]
+    err = captured.err.splitlines()
+    assert len(err) == 2 and all(line.startswith("motion_prior: ") for line in err)
+    assert "02_still: nothing to score" in err[0] and "03_broken.hdf5: cannot be read" in err[1]
+
+    (broad / "01_moving.hdf5").unlink()
+    assert tool.main([]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == "motion_prior: no BROAD trial with something to score is left"

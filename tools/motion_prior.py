@@ -26,8 +26,10 @@ with the truth turning the specific force into the world frame (NED):
 The low-pass is mavest's (second order, ω = √2/τ, ζ = 1/√2, τ = the default
 ``accel_lowpass_time``), here discretised by scipy (bilinear), and the predictions
 are its frequency response integrated against the model's spectrum. ``--results``
-writes the table as the Motion prior section of docs/results.md (or FILE). Exits 2,
-with one line, when BROAD or h5py is missing.
+writes the table as the Motion prior section of docs/results.md (or FILE). A file that
+is not a readable trial, a second copy of a recording, or a trial with nothing to score
+(no movement sample with known truth) is left out with one line; exits 2, with one
+line, when BROAD or h5py is missing or no trial is left.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from scipy.spatial.transform import Rotation
 
 from mavest import EstimatorConfig
 from mavest.datasets import DATA_ENV_VAR
-from mavest.datasets.broad import BroadTrial, list_trials, load_trial
+from mavest.datasets.broad import BroadTrial, list_trials, load_trials
 from mavest.evaluation import report
 
 G = 9.80665
@@ -169,7 +171,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"motion_prior: no BROAD trial in {DATA_ENV_VAR}'s broad/", file=sys.stderr)
         return 2
     tau = EstimatorConfig().accel_lowpass_time
-    priors = [measure(load_trial(path), tau) for path in paths]
+
+    def say(line: str) -> None:
+        print(f"motion_prior: {line}", file=sys.stderr, flush=True)
+
+    priors = [measure(trial, tau) for trial in load_trials(paths, say, scored_only=True)]
+    if not priors:
+        say("no BROAD trial with something to score is left")
+        return 2
     shares = ", ".join(
         f"{t:g} s: {fast_share(t, SHORT, tau) / fast_share(t, LONG, tau):.2f}"
         for t in (0.1, 0.3, 1.0, 3.0)

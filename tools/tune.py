@@ -37,14 +37,24 @@ with the lowest mean total RMSE on the tuning half.
 Held-out, per direction: mavest (its choice), mavest's defaults and VQF on the same
 trials; the paired per-trial differences (how many trials mavest is better on, the
 median difference); tilt calibration (trials in the band, median ρ); 9-D total RMSE
-likewise. ``--results`` writes the tables as the profile's Cross-validation section of
-docs/results.md (or FILE).
+likewise. mavest's defaults were chosen on the 22 shared trials
+(:data:`mavest.datasets.broad.TUNED_ON`), so their figures are held out only on trials
+outside those: the tables say on how many of each half, and of which trial, they were.
+The closing line is this run's choice on all its trials, compared with what the
+profile's file sets. ``--results`` writes the tables as the profile's Cross-validation
+section of docs/results.md (or FILE).
+
+Any folder of BROAD-format trials will do (``MAVEST_DATA``): a file that is not a
+readable trial, a second copy of a recording, or a trial with nothing to score is left
+out with one line; fewer than two trials left, or no BROAD folder, is one line and
+exit 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import itertools
 import math
 import statistics
@@ -52,12 +62,23 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 import mavest
 from mavest import EstimatorConfig
-from mavest.datasets.broad import BroadTrial, halves, list_trials, load_trial
+from mavest.datasets.broad import (
+    TUNED_ON,
+    BroadTrial,
+    broad_dir,
+    halves,
+    list_trials,
+    load_trials,
+    trial_labels,
+    tuned_on,
+)
+from mavest.estimator.config import ConfigError
 from mavest.estimator.frames import add_alignment
 from mavest.evaluation import report
 from mavest.evaluation.calibration import score_attitude
@@ -139,6 +160,7 @@ CALIBRATED = (0.6, 1.6)
 #: mavest's defaults: the velocity's level fixed, no rate noise
 DEFAULT = EstimatorConfig()
 QUICK_TRIALS = 4
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @dataclass(frozen=True)
@@ -231,6 +253,7 @@ class Direction:
 
 
 def held_out_table(
+    trials: Sequence[BroadTrial],
     directions: Sequence[Direction],
     table_6d: dict[Values, list[TrialScore]],
     table_mag: dict[tuple[Values, float], list[float]],
@@ -242,8 +265,9 @@ def held_out_table(
     lines = [
         "| tuned on → reported on | chosen | 6-D inclination RMSE: mavest / default / VQF "
         "| mavest − VQF, paired | tilt σ calibrated (ratio in [0.6, 1.6]) | median ρ "
-        "| 9-D total RMSE: mavest / default / VQF | 9-D mavest − VQF, paired |",
-        "|---|---|---|---|---|---|---|---|",
+        "| 9-D total RMSE: mavest / default / VQF | 9-D mavest − VQF, paired "
+        "| defaults chosen on these trials |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in directions:
         ours = [table_6d[d.choice_6d][i] for i in d.subset]
@@ -261,7 +285,8 @@ def held_out_table(
             f"| {_median_rho(ours):+.2f} (default {_median_rho(defaults):+.2f}) "
             f"| {total.mean():.3f}° / {np.mean([default_9d[i] for i in d.subset]):.3f}° / "
             f"{total_vqf.mean():.3f}° ({total.mean() / total_vqf.mean():.2f}×) "
-            f"| {report.paired(total, total_vqf)} |"
+            f"| {report.paired(total, total_vqf)} "
+            f"| {sum(tuned_on(trials[i].name) for i in d.subset)} of {len(d.subset)} |"
         )
     return "\n".join(lines)
 
@@ -273,15 +298,17 @@ def per_trial_table(
     vqf: list[float],
 ) -> str:
     lines = [
-        "| trial | held out in | inclination: mavest / VQF | tilt ratio | ρ |",
-        "|---|---|---|---|---|",
+        "| trial | held out in | inclination: mavest / VQF | tilt ratio | ρ "
+        "| defaults chosen on it |",
+        "|---|---|---|---|---|---|",
     ]
     for d in directions:
         for i in d.subset:
             s = table_6d[d.choice_6d][i]
             lines.append(
                 f"| {trials[i].name} | {d.held_out} | {s.inclination:.3f}° / {vqf[i]:.3f}° "
-                f"| {s.ratio:.2f} | {s.rho:+.2f} |"
+                f"| {s.ratio:.2f} | {s.rho:+.2f} "
+                f"| {'yes' if tuned_on(trials[i].name) else 'no'} |"
             )
     return "\n".join(lines)
 
@@ -296,10 +323,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     profile = PROFILES[args.profile]
     start = time.perf_counter()
-    paths = list_trials()
-    if args.quick:
-        paths = paths[:QUICK_TRIALS]
-    trials = [load_trial(p) for p in paths]
+    trials = _load(args.quick)
+    if trials is None:
+        return 2
     grid = profile.quick_grid if args.quick else profile.grid
     vqf = [rmse_deg(_peer(t, False), t.truth_q, t.movement)["inclination"] for t in trials]
     vqf_9d = [rmse_deg(_peer(t, True), t.truth_q, t.movement)["total"] for t in trials]
@@ -335,33 +361,105 @@ def main(argv: list[str] | None = None) -> int:
     ]
     overall = (choices["all"], mag_for(choices["all"], everything))
     gyro, scale, adapt, velocity_time, alignment = overall[0]
+    labels = trial_labels([t.name for t in trials])
+    in_sample = sum(tuned_on(t.name) for t in trials)
     with report.results_section(args.results, profile.title, __file__, argv, __doc__):
         print(
             f"Profile {profile.name} ({profile.config_file}). Halves of the {len(trials)} "
-            "shared BROAD trials: A = "
-            + ", ".join(trials[i].name[:2] for i in a)
+            f"BROAD trials ({in_sample} of them among the {len(TUNED_ON)} mavest's defaults "
+            "were chosen on): A = "
+            + ", ".join(labels[i] for i in a)
             + "; B = "
-            + ", ".join(trials[i].name[:2] for i in b)
-            + ". Every figure below is on the half the parameters were **not** chosen on."
+            + ", ".join(labels[i] for i in b)
+            + ". Every figure below is on the half the parameters were **not** chosen on, "
+            "except the defaults': mavest's defaults were chosen on the "
+            f"{len(TUNED_ON)} trials of mavest.datasets.broad.TUNED_ON, so on those "
+            "(columns 'defaults chosen on') their figures are in-sample."
         )
         print()
-        print(held_out_table(directions, table_6d, table_mag, default, default_9d, vqf, vqf_9d))
+        print(
+            held_out_table(
+                trials, directions, table_6d, table_mag, default, default_9d, vqf, vqf_9d
+            )
+        )
         print()
         print(per_trial_table(trials, directions, table_6d, vqf))
         print()
         print(
-            f"The rule applied to all {len(trials)} trials (what {profile.config_file} sets; "
-            "the defaults keep the velocity's level fixed): gyro_noise_density "
+            f"The rule applied to all {len(trials)} trials, this run's choice (the defaults "
+            "keep the velocity's level fixed): gyro_noise_density "
             f"{gyro:g}, gyro_scale_noise_density {scale:g}, velocity_adapt_time {adapt:g} s, "
             f"velocity_time {velocity_time:g} s, accel_alignment_sigma "
             f"{math.degrees(alignment):g}° ({alignment:.6g} rad), "
             f"mag_heading_noise_density {overall[1]:g}. "
-            "(In the A → B and B → A rows the halves chose "
+            + against_file(profile, overall)
+            + " (In the A → B and B → A rows the halves chose "
             + "; ".join(f"{d.tuned_on}: {describe(d.choice_6d, d.choice_mag)}" for d in directions)
             + ".)"
         )
     print(f"\n({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     return 0
+
+
+def _load(quick: bool) -> list[BroadTrial] | None:
+    """The trials to tune on (the first :data:`QUICK_TRIALS` usable ones with
+    ``quick``), or None after one line saying why there are too few to split."""
+
+    def say(line: str) -> None:
+        print(f"tune: {line}", file=sys.stderr, flush=True)
+
+    try:
+        importlib.import_module("h5py")
+        paths = list_trials()
+    except ImportError:
+        say("the package h5py (dev extra) is needed to read BROAD")
+        return None
+    except FileNotFoundError as error:
+        say(str(error))
+        return None
+    loaded = load_trials(paths, say, scored_only=True)
+    trials = list(itertools.islice(loaded, QUICK_TRIALS) if quick else loaded)
+    if len(trials) < 2:
+        say(
+            f"needs two BROAD trials with something to score to split them, found "
+            f"{len(trials)} in {broad_dir()}"
+        )
+        return None
+    return trials
+
+
+#: The keys the closing line reports: :data:`Values`' order, then the magnetometer's.
+RULE_KEYS = (
+    "gyro_noise_density",
+    "gyro_scale_noise_density",
+    "velocity_adapt_time",
+    "velocity_time",
+    "accel_alignment_sigma",
+    "mag_heading_noise_density",
+)
+
+
+def against_file(profile: Profile, overall: tuple[Values, float]) -> str:
+    """A sentence comparing this run's choice with what the profile's file sets."""
+    chosen = dict(zip(RULE_KEYS, (*overall[0], overall[1]), strict=True))
+    try:
+        config = EstimatorConfig.from_toml(ROOT / profile.config_file)
+    except (OSError, ConfigError) as error:
+        return f"({profile.config_file} could not be read to compare: {error}.)"
+
+    def show(key: str, value: float) -> str:  # (in the units above)
+        if key == "accel_alignment_sigma":
+            return f"{math.degrees(value):g}°"
+        return f"{value:g} s" if key.endswith("_time") else f"{value:g}"
+
+    differ = [
+        f"{key} {show(key, getattr(config, key))} (this run {show(key, value)})"
+        for key, value in chosen.items()
+        if not math.isclose(getattr(config, key), value, rel_tol=1e-9, abs_tol=0.0)
+    ]
+    if not differ:
+        return f"{profile.config_file} sets the same."
+    return f"{profile.config_file} sets otherwise: " + ", ".join(differ) + "."
 
 
 def _peer(trial: BroadTrial, mag: bool) -> np.ndarray:

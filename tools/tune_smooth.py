@@ -11,13 +11,23 @@ half, both ways round: the smoother with the choice, without the average (0) and
 offline VQF (Laidig & Seel 2023's smoother) on the same trials, with the paired
 per-trial differences; 9-D total RMSE likewise, with the same choice. Then the rule
 applied to all 22 gives the default (its figures on the trials it was chosen on are
-not reported as results). ``--results`` writes the tables as the Smoothing
-cross-validation section of docs/results.md (or FILE).
+not reported as results); the closing line says this run's choice and the default.
+The filter's other parameters are mavest's defaults, chosen on the 22 shared trials
+(:data:`mavest.datasets.broad.TUNED_ON`): the per-trial table says which trials those
+are. ``--results`` writes the tables as the Smoothing cross-validation section of
+docs/results.md (or FILE).
+
+Any folder of BROAD-format trials will do (``MAVEST_DATA``): a file that is not a
+readable trial, a second copy of a recording, or a trial with nothing to score is left
+out with one line; fewer than two trials left, or no BROAD folder, is one line and
+exit 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import itertools
 import statistics
 import sys
 import time
@@ -25,7 +35,16 @@ from collections.abc import Sequence
 
 import mavest
 from mavest import EstimatorConfig
-from mavest.datasets.broad import BroadTrial, halves, list_trials, load_trial
+from mavest.datasets.broad import (
+    TUNED_ON,
+    BroadTrial,
+    broad_dir,
+    halves,
+    list_trials,
+    load_trials,
+    trial_labels,
+    tuned_on,
+)
 from mavest.evaluation import report
 from mavest.evaluation.metrics import rmse_deg
 from mavest.evaluation.peers import PEERS
@@ -89,13 +108,13 @@ def held_out_rows(
 ) -> list[str]:
     """One row per direction, on the half not tuned on."""
     rows = []
-    for tuned_on, reported_on, subset, tau in directions:
+    for chosen_on, reported_on, subset, tau in directions:
         chosen = [table[tau][i] for i in subset]
         plain = [table[0.0][i] for i in subset]
         theirs = [offline[i] for i in subset]
         mean, mean_plain, mean_theirs = (statistics.fmean(v) for v in (chosen, plain, theirs))
         rows.append(
-            f"| {tuned_on} → {reported_on} | {tau:g} s | {mean:.3f}° / {mean_plain:.3f}° / "
+            f"| {chosen_on} → {reported_on} | {tau:g} s | {mean:.3f}° / {mean_plain:.3f}° / "
             f"{mean_theirs:.3f}° ({mean / mean_theirs:.2f}×) | {report.paired(chosen, theirs)} "
             f"| {report.paired(chosen, plain)} |"
         )
@@ -113,7 +132,8 @@ def per_trial_rows(
         for i in subset:
             rows.append(
                 f"| {trials[i].name} | {reported_on} | {tau:g} s | {table[tau][i]:.3f}° | "
-                f"{table[0.0][i]:.3f}° | {offline[i]:.3f}° |"
+                f"{table[0.0][i]:.3f}° | {offline[i]:.3f}° "
+                f"| {'yes' if tuned_on(trials[i].name) else 'no'} |"
             )
     return rows
 
@@ -127,18 +147,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="two time constants, four trials")
     report.add_results_option(parser)
     args = parser.parse_args(argv)
-    try:
-        paths = list_trials()
-    except FileNotFoundError as error:
-        print(f"tune_smooth: {error}", file=sys.stderr)
-        return 2
-    if args.quick:
-        paths = paths[:QUICK_TRIALS]
-    if len(paths) < 2:
-        print("tune_smooth: needs BROAD trials (MAVEST_DATA)", file=sys.stderr)
-        return 2
     start = time.perf_counter()
-    trials = [load_trial(p) for p in paths]
+    trials = _load(args.quick)
+    if trials is None:
+        return 2
     grid = QUICK_GRID if args.quick else GRID
     table_6d, table_9d = scores(trials, grid, False), scores(trials, grid, True)
     offline_6d, offline_9d = peer(trials, False), peer(trials, True)
@@ -150,14 +162,20 @@ def main(argv: list[str] | None = None) -> int:
         "offline VQF | smoothed − offline VQF, paired | smoothed − without the average, "
         "paired |\n|---|---|---|---|---|"
     )
+    labels = trial_labels([t.name for t in trials])
+    in_sample = sum(tuned_on(t.name) for t in trials)
     with report.results_section(args.results, TITLE, __file__, argv, __doc__):
         print(
-            f"Halves of the {len(trials)} shared BROAD trials: A = "
-            + ", ".join(trials[i].name[:2] for i in a)
+            f"Halves of the {len(trials)} BROAD trials ({in_sample} of them among the "
+            f"{len(TUNED_ON)} mavest's defaults were chosen on): A = "
+            + ", ".join(labels[i] for i in a)
             + "; B = "
-            + ", ".join(trials[i].name[:2] for i in b)
+            + ", ".join(labels[i] for i in b)
             + ". Every figure below is on the half the time constant was **not** chosen on "
-            "(by mean 6-D inclination); the 9-D rows use the same choice.\n"
+            "(by mean 6-D inclination); the 9-D rows use the same choice. The filter's "
+            "other parameters are mavest's defaults, chosen on the "
+            f"{len(TUNED_ON)} trials of mavest.datasets.broad.TUNED_ON: on those (column "
+            "'defaults chosen on it') they are in-sample.\n"
         )
         print(header.format(what="6-D inclination RMSE"))
         print("\n".join(held_out_rows(table_6d, offline_6d, directions)))
@@ -167,18 +185,48 @@ def main(argv: list[str] | None = None) -> int:
         print()
         print(
             "| trial | held out in | chosen | 6-D inclination: smoothed | without the "
-            "average | offline VQF |\n|---|---|---|---|---|---|"
+            "average | offline VQF | defaults chosen on it |\n|---|---|---|---|---|---|---|"
         )
         print("\n".join(per_trial_rows(trials, table_6d, offline_6d, directions)))
+        default = EstimatorConfig().smooth_accel_time
         print(
-            f"\nThe rule applied to all {len(trials)} trials (the default, "
-            f"EstimatorConfig.smooth_accel_time): {overall:g} s. Mean 6-D inclination of "
+            f"\nThe rule applied to all {len(trials)} trials, this run's choice: {overall:g} s "
+            f"(the default, EstimatorConfig.smooth_accel_time, is {default:g} s"
+            + (", the same" if overall == default else "")
+            + "). Mean 6-D inclination of "
             "every time constant over all the trials (tuned on, not results): "
             + ", ".join(f"{tau:g} s {statistics.fmean(table_6d[tau]):.3f}°" for tau in grid)
             + "."
         )
     print(f"({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     return 0
+
+
+def _load(quick: bool) -> list[BroadTrial] | None:
+    """The trials to tune on (the first :data:`QUICK_TRIALS` usable ones with
+    ``quick``), or None after one line saying why there are too few to split."""
+
+    def say(line: str) -> None:
+        print(f"tune_smooth: {line}", file=sys.stderr, flush=True)
+
+    try:
+        importlib.import_module("h5py")
+        paths = list_trials()
+    except ImportError:
+        say("the package h5py (dev extra) is needed to read BROAD")
+        return None
+    except FileNotFoundError as error:
+        say(str(error))
+        return None
+    loaded = load_trials(paths, say, scored_only=True)
+    trials = list(itertools.islice(loaded, QUICK_TRIALS) if quick else loaded)
+    if len(trials) < 2:
+        say(
+            f"needs two BROAD trials with something to score to split them, found "
+            f"{len(trials)} in {broad_dir()}"
+        )
+        return None
+    return trials
 
 
 if __name__ == "__main__":

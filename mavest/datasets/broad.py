@@ -14,7 +14,9 @@ opt_quat       N×4     (w, x, y, z), IMU → ENU world; NaN where tracking was 
 movement       N       bool, the samples the dataset's scoring uses
 =============  ======  ================================================================
 
-and ``attrs['sampling_rate']`` in Hz.
+and ``attrs['sampling_rate']`` in Hz. A file that is not such a trial (unreadable, a key
+missing, shapes that disagree) raises :class:`BroadFileError`, whose message is one line
+naming the file; :func:`load_trials` loads many, leaving such files out with one line each.
 
 mavest works in FRD body / NED world (docs/design.md#conventions), so the loader converts
 explicitly, once, here:
@@ -27,12 +29,24 @@ explicitly, once, here:
 * Truth: ``R(FRD → NED) = C_NED_ENU · R_opt(IMU → ENU) · C_IMU_FRD``, in quaternions
   ``q_truth = q(ENU→NED) ⊗ q_opt ⊗ q(FRD→IMU)``. Rows where ``opt_quat`` is NaN stay NaN.
 
+Non-finite IMU samples (a NaN or inf in any axis of the gyroscope, accelerometer or
+magnetometer) are filled, each sensor from its own finite samples: linearly interpolated
+over time between the nearest finite neighbours, held at the ends. Every filter then runs
+on the same samples (a NaN that one filter skips and another propagates would compare
+the NaN handling, not the estimation), and the filled samples are left out of the
+scoring (their ``movement`` cleared: no filter measured anything there). Interpolation,
+not a zero or a hold, because it keeps the rate's and the field's continuity across a
+one-sample dropout; across a longer gap no rule knows the motion, and what the filters
+make of the bridged samples afterwards is scored, as it would be on a vehicle.
+
 h5py is a development extra, so it is imported inside :func:`load_trial`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import hashlib
+import sys
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,11 +59,17 @@ __all__ = [
     "BROAD_RATE_HZ",
     "C_IMU_FRD",
     "C_NED_ENU",
+    "TUNED_ON",
+    "BroadFileError",
     "BroadTrial",
     "broad_dir",
+    "halves",
     "list_trials",
     "load_trial",
+    "load_trials",
+    "trial_labels",
     "truth_from_opt_quat",
+    "tuned_on",
 ]
 
 #: Nominal BROAD sampling rate (Hz); each file also stores its own.
@@ -111,7 +131,11 @@ class BroadTrial:
         mag: (N, 3) magnetic field in µT, FRD.
         truth_q: (N, 4) optical ground truth (w, x, y, z), FRD body → NED world; rows
             where the motion capture lost track are NaN.
-        movement: (N,) bool, the samples the dataset's scoring uses.
+        movement: (N,) bool, the samples the dataset's scoring uses, less the filled
+            ones (``filled``).
+        filled: how many samples had a non-finite IMU value (any sensor, any axis) and
+            were filled by interpolation (module docstring); 0 for a clean recording,
+            which loads exactly as stored.
     """
 
     name: str
@@ -122,6 +146,12 @@ class BroadTrial:
     mag: np.ndarray
     truth_q: np.ndarray
     movement: np.ndarray
+    filled: int = 0
+
+    @property
+    def scored(self) -> np.ndarray:
+        """(N,) bool: the samples a score counts, ``movement`` where the truth is known."""
+        return self.movement & np.all(np.isfinite(self.truth_q), axis=1)
 
     @property
     def duration(self) -> float:
@@ -148,10 +178,22 @@ def broad_dir(root: Path | str | None = None) -> Path:
     return root
 
 
+class BroadFileError(ValueError):
+    """A file that cannot be read as a BROAD trial; the message is one line that names
+    the file and what is wrong with it."""
+
+
+def _is_trial_file(path: Path) -> bool:
+    return path.suffix.lower() == ".hdf5"
+
+
 def list_trials(root: Path | None = None, prefixes: Sequence[str] | None = None) -> list[Path]:
-    """All BROAD trial files (``*.hdf5``), sorted by name (trial number first); with
-    ``prefixes``, those whose names start with one of them."""
-    paths = sorted(broad_dir(root).glob("*.hdf5"))
+    """All BROAD trial files (``*.hdf5``, any case), sorted by name (trial number
+    first; a name before its longer variants); with ``prefixes``, those whose names
+    start with one of them."""
+    paths = sorted(
+        (p for p in broad_dir(root).iterdir() if _is_trial_file(p)), key=lambda p: (p.stem, p.name)
+    )
     if prefixes:
         paths = [p for p in paths if any(p.stem.startswith(x) for x in prefixes)]
     return paths
@@ -164,12 +206,20 @@ def halves(trials: Sequence[object]) -> tuple[list[int], list[int]]:
     return list(range(0, len(trials), 2)), list(range(1, len(trials), 2))
 
 
+def trial_labels(names: Sequence[str]) -> list[str]:
+    """Short labels for these trials in a list: their two-digit numbers (``"07"``) when
+    every name starts with its own, else the names themselves."""
+    numbers = [name[:2] for name in names]
+    numbered = all(n.isdigit() and len(n) == 2 for n in numbers)
+    return numbers if numbered and len(set(numbers)) == len(numbers) else list(names)
+
+
 def _resolve_trial(path_or_name: Path | str) -> Path:
     """A trial file from a path, a full trial name, or a unique name prefix (``"07"``)."""
     path = Path(path_or_name)
-    if path.suffix == ".hdf5" and path.is_file():
+    if _is_trial_file(path) and path.is_file():
         return path
-    name = path.name.removesuffix(".hdf5")
+    name = path.stem if _is_trial_file(path) else path.name
     candidates = list_trials(path.parent if path.parent != Path() else None)
     exact = [p for p in candidates if p.stem == name]
     if exact:
@@ -199,28 +249,87 @@ def truth_from_opt_quat(opt_quat: np.ndarray) -> np.ndarray:
     return out
 
 
+def _fill_non_finite(values: np.ndarray) -> np.ndarray:
+    """A copy of the (N, k) ``values`` whose rows holding a non-finite value are linearly
+    interpolated over the sample index (the times are uniform) from the finite rows,
+    and held at the ends; at least one row must be finite."""
+    bad = ~np.all(np.isfinite(values), axis=1)
+    index = np.arange(values.shape[0])
+    out = values.copy()
+    for axis in range(values.shape[1]):
+        out[bad, axis] = np.interp(index[bad], index[~bad], values[~bad, axis])
+    return out
+
+
 def load_trial(path_or_name: Path | str) -> BroadTrial:
     """Load one BROAD trial and convert it to FRD/NED (see the module docstring).
 
     ``path_or_name`` is a path to a ``.hdf5`` file, a trial name such as
     ``"07_undisturbed_fast_rotation_B"``, or a unique prefix such as ``"07"`` (looked up
-    in ``<data root>/broad``).
+    in ``<data root>/broad``). Raises :class:`BroadFileError` for a file that is not a
+    readable trial, FileNotFoundError (or ValueError, ambiguous) for a name that names
+    none.
     """
     import h5py  # development extra: only the loader needs it
 
     path = _resolve_trial(path_or_name)
-    with h5py.File(path, "r") as f:
-        rate = float(f.attrs["sampling_rate"])
-        gyr = np.asarray(f["imu_gyr"][()], dtype=np.float64)
-        acc = np.asarray(f["imu_acc"][()], dtype=np.float64)
-        mag = np.asarray(f["imu_mag"][()], dtype=np.float64)
-        opt_quat = np.asarray(f["opt_quat"][()], dtype=np.float64)
-        movement = np.asarray(f["movement"][()]).astype(bool).reshape(-1)
 
-    n = gyr.shape[0]
-    for key, arr in (("imu_acc", acc), ("imu_mag", mag), ("opt_quat", opt_quat)):
-        if arr.shape[0] != n:
-            raise ValueError(f"{path.name}: {key} has {arr.shape[0]} rows, imu_gyr has {n}")
+    def bad(what: str) -> BroadFileError:
+        return BroadFileError(f"{path}: {what}")
+
+    if not path.is_file():  # a broken link, or a folder named like a trial
+        raise bad("is not a readable file")
+    widths = {"imu_gyr": 3, "imu_acc": 3, "imu_mag": 3, "opt_quat": 4, "movement": 1}
+    arrays: dict[str, np.ndarray] = {}
+    try:
+        with h5py.File(path, "r") as f:
+            if "sampling_rate" not in f.attrs:
+                raise bad("not a BROAD trial: no 'sampling_rate' attribute")
+            stored_rate = np.asarray(f.attrs["sampling_rate"])
+            for key in widths:
+                if not isinstance(f.get(key), h5py.Dataset):
+                    raise bad(f"not a BROAD trial: no {key!r} dataset")
+                arrays[key] = np.asarray(f[key][()])
+    except BroadFileError:
+        raise
+    except (OSError, ValueError, TypeError, KeyError, IndexError) as error:
+        # h5py's messages are one line ("Unable to synchronously open file (truncated
+        # file: …)"); the first line of any other is enough to say what is wrong
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise bad(f"cannot be read as HDF5 ({reason})") from error
+
+    rate = float(stored_rate) if stored_rate.size == 1 and stored_rate.dtype.kind in "iuf" else 0.0
+    if not (np.isfinite(rate) and rate > 0.0):
+        raise bad(f"sampling_rate {stored_rate!r} is not a rate in Hz")
+    n = arrays["imu_gyr"].shape[0] if arrays["imu_gyr"].ndim else 0
+    if n == 0:
+        raise bad("imu_gyr holds no samples")
+    for key, width in widths.items():
+        arr = arrays[key]
+        shape = (n,) if width == 1 else (n, width)
+        if key == "movement":
+            arr = arr.reshape(-1) if arr.size == n else arr
+        if arr.shape != shape or arr.dtype.kind not in "biuf":
+            raise bad(
+                f"{key} is {arr.dtype} {arr.shape}, not numbers shaped {shape} "
+                f"(imu_gyr has {n} samples)"
+            )
+        arrays[key] = arr.astype(np.float64) if width > 1 else arr.astype(bool)
+
+    movement = arrays["movement"]
+    imu = {}
+    filled = np.zeros(n, dtype=bool)
+    for key in ("imu_gyr", "imu_acc", "imu_mag"):
+        arr = arrays[key]
+        finite = np.all(np.isfinite(arr), axis=1)
+        if not finite.any():
+            raise bad(f"{key} has no finite sample")
+        if not finite.all():
+            arr = _fill_non_finite(arr)
+            filled |= ~finite
+        imu[key] = arr
+    if filled.any():  # (a clean trial keeps its stored arrays as they are)
+        movement = movement & ~filled
 
     # v_frd = C_IMU_FRD^T v_imu = C_IMU_FRD v_imu (the matrix is its own inverse).
     # Row vectors: v_frd^T = v_imu^T C_IMU_FRD^T.
@@ -231,9 +340,60 @@ def load_trial(path_or_name: Path | str) -> BroadTrial:
         name=path.stem,
         rate=rate,
         t=np.arange(n, dtype=np.float64) / rate,
-        gyro=to_frd(gyr),
-        accel=to_frd(acc),
-        mag=to_frd(mag),
-        truth_q=truth_from_opt_quat(opt_quat),
+        gyro=to_frd(imu["imu_gyr"]),
+        accel=to_frd(imu["imu_acc"]),
+        mag=to_frd(imu["imu_mag"]),
+        truth_q=truth_from_opt_quat(arrays["opt_quat"]),
         movement=movement,
+        filled=int(filled.sum()),
     )
+
+
+def _print_line(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def load_trials(
+    paths: Iterable[Path | str],
+    say: Callable[[str], None] = _print_line,
+    *,
+    scored_only: bool = False,
+) -> Iterator[BroadTrial]:
+    """Load these trials in turn, saying in one line each (``say``; default: on stderr)
+    what is left out and why, and going on:
+
+    * a file that is not a readable trial (:class:`BroadFileError`'s line);
+    * the same recording as one already loaded under another name (equal IMU arrays):
+      the first name is kept, so that a copy cannot fall in both halves of a split;
+    * with ``scored_only``, a trial with nothing to score (no movement sample with known
+      truth, :attr:`BroadTrial.scored`).
+
+    A trial with filled samples is loaded, with a line saying how many.
+    """
+    seen: dict[str, str] = {}
+    for path in paths:
+        try:
+            trial = load_trial(path)
+        except BroadFileError as error:
+            say(f"{error}; left out")
+            continue
+        except FileNotFoundError as error:  # (gone since it was listed)
+            say(f"{path}: {error}; left out")
+            continue
+        digest = hashlib.sha256()
+        for values in (trial.gyro, trial.accel, trial.mag):
+            digest.update(values.tobytes())
+        key = digest.hexdigest()
+        if key in seen:
+            say(f"{trial.name}: the same recording as {seen[key]}; left out")
+            continue
+        seen[key] = trial.name
+        if scored_only and not trial.scored.any():
+            say(f"{trial.name}: nothing to score (no movement sample with known truth); left out")
+            continue
+        if trial.filled:
+            say(
+                f"{trial.name}: {trial.filled} sample(s) with a non-finite IMU value filled "
+                "by interpolation and not scored"
+            )
+        yield trial
