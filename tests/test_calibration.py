@@ -9,6 +9,7 @@ short simulated flight, and on one BROAD trial when the shared data is there.
 from __future__ import annotations
 
 import math
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from tool_module import load_tool
 
 import mavest
+import mavest.datasets.broad as broad
 from mavest import EstimatorConfig, estimate
 from mavest.datasets import DATA_ENV_VAR, data_root
 from mavest.estimator.charts import local_into
@@ -325,7 +327,7 @@ def test_split_keeps_the_trials_of_one_parity(
         (folder / f"{name}.hdf5").touch()
     monkeypatch.setenv(DATA_ENV_VAR, str(tmp_path))
     loaded: list[str] = []
-    monkeypatch.setattr(tool, "load_trial", lambda path: loaded.append(path.stem) or _stub())
+    monkeypatch.setattr(broad, "load_trial", lambda path: loaded.append(path.stem) or _stub(path))
     tool.broad_recordings(None, "odd", quick=False)
     assert loaded == ["03_b", "07_c", "11_e"]
     loaded.clear()
@@ -336,12 +338,14 @@ def test_split_keeps_the_trials_of_one_parity(
     assert loaded == ["02_a", "07_c", "11_e"]
 
 
-def _stub() -> object:
-    """A one-sample trial: what the recordings are built from."""
-    from mavest.datasets.broad import BroadTrial
-
+def _stub(path: Path) -> object:
+    """A one-sample trial: what the recordings are built from (its field its own, so that
+    no two are taken for copies of one recording)."""
     one = np.zeros((1, 3))
-    return BroadTrial("x", RATE, np.zeros(1), one, one, one, np.ones((1, 4)), np.ones(1, bool))
+    mag = np.full((1, 3), float(zlib.crc32(path.stem.encode())))
+    return broad.BroadTrial(
+        path.stem, RATE, np.zeros(1), one, one, mag, np.ones((1, 4)), np.ones(1, bool)
+    )
 
 
 def test_exits_2_with_one_line_when_broad_is_missing(
@@ -372,4 +376,113 @@ def test_one_broad_trial(capsys: pytest.CaptureFixture[str]) -> None:
     assert 0.2 < float(tilt[5]) < 0.7
     heading = [cell.strip() for cell in rows[2].strip("|").split("|")]
     assert abs(float(heading[-1])) < 5.0  # north offset, measured −0.09°
-    assert "(defaults tuned on these)" in out and "chosen on all 22 shared trials" in out
+    assert "(defaults tuned on these)" in out and "(held out" not in out
+    assert "chosen on this trial, so none of its BROAD figures here is held out" in out
+
+
+def _still_trial(name: str, movement: bool = True, seconds: float = 20.0) -> object:
+    """A level trial at rest, truth level and north, scored throughout (or nowhere)."""
+    from mavest.datasets.broad import BroadTrial
+
+    n = int(seconds * RATE)
+    t = np.arange(n) / RATE
+    gyro = np.zeros((n, 3))
+    accel = np.tile([0.0, 0.0, -9.81], (n, 1))
+    mag = np.tile([20.0, 0.0, 45.0], (n, 1))
+    mag[0, 1] = 1e-9 * zlib.crc32(name.encode())  # (its own: no two are taken for copies)
+    truth = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    return BroadTrial(name, RATE, t, gyro, accel, mag, truth, np.full(n, movement))
+
+
+def _broad_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, names: list[str]) -> None:
+    """A BROAD folder of these (empty) files, each loaded as :func:`_still_trial`; a name
+    with "nomove" in it has no movement phase."""
+    pytest.importorskip("h5py", reason="h5py (dev extra) is needed to read BROAD")
+    folder = tmp_path / "broad"
+    folder.mkdir()
+    for name in names:
+        (folder / f"{name}.hdf5").touch()
+    monkeypatch.setenv(DATA_ENV_VAR, str(tmp_path))
+    monkeypatch.setattr(
+        broad, "load_trial", lambda path: _still_trial(path.stem, "nomove" not in path.stem)
+    )
+
+
+def test_split_by_a_number_that_is_not_two_digits_or_none(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _broad_folder(tmp_path, monkeypatch, ["02_b", "7_single_digit", "lab_recording_A"])
+    odd = tool.broad_recordings(None, "odd", quick=False)
+    assert [r.name for r in odd] == ["7_single_digit"] * 2  # 6-D and 9-D
+    assert capsys.readouterr().err == (
+        "covariance: --split odd: lab_recording_A has no trial number: left out\n"
+    )
+    assert {r.name for r in tool.broad_recordings(None, "even", quick=False)} == {"02_b"}
+
+
+def test_a_trial_with_nothing_to_score_is_left_out(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _broad_folder(tmp_path, monkeypatch, ["01_nomove", "07_undisturbed_fast_rotation_B"])
+    assert tool.main(["--parts", "broad", "--estimator", "mavest"]) == 0
+    captured = capsys.readouterr()
+    assert (
+        "covariance: 01_nomove: nothing to score (no movement sample with known truth); left out\n"
+        in (captured.err)
+    )
+    assert "01_nomove" not in captured.out
+    assert "| mavest | BROAD 6-D tilt (defaults tuned on these) | 1 |" in captured.out
+    assert "in [0.6, 1.6] | median" in captured.out and "of 2" not in captured.out
+
+
+def test_trials_tuned_on_and_held_out_are_scored_apart(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    tuned, unseen = "07_undisturbed_fast_rotation_B", "01_undisturbed_slow_rotation_A"
+    _broad_folder(tmp_path, monkeypatch, [tuned, unseen])
+    assert tool.main(["--parts", "broad", "--estimator", "mavest"]) == 0
+    out = capsys.readouterr().out
+    summary = [line for line in out.splitlines() if line.startswith("| mavest | BROAD")]
+    assert [line.split(" | ")[1:3] for line in summary] == [
+        [f"BROAD {quantity} ({kind})", "1"]
+        for quantity in ("6-D tilt", "9-D tilt", "9-D heading")
+        for kind in ("defaults tuned on these", "held out: defaults not tuned on these")
+    ]
+    assert "chosen on 1 of these 2 trials" in out and "the other 1 is held out" in out
+    assert "reported on" not in out  # no figure measured elsewhere beside this run's
+    titles = [line for line in out.splitlines() if line.startswith("### ")]
+    for title in titles:
+        rows = out.split(title, 1)[1].split("###", 1)[0]
+        assert (tuned in rows) != (unseen in rows), title
+        assert (tuned in rows) == ("(defaults tuned on these)" in title), title
+
+
+def test_no_trial_of_a_selection_tuned_on_says_every_figure_is_held_out(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _broad_folder(tmp_path, monkeypatch, ["01_undisturbed_slow_rotation_A", "lab_recording"])
+    assert tool.main(["--parts", "broad", "--estimator", "mavest"]) == 0
+    out = capsys.readouterr().out
+    assert "(defaults tuned on these)" not in out and "none of its BROAD figures" not in out
+    assert "not chosen on any of these 2 trials: every BROAD figure here is held out" in out
+
+
+def test_an_estimator_that_leaves_samples_without_an_estimate_is_named(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _broad_folder(tmp_path, monkeypatch, ["07_undisturbed_fast_rotation_B"])
+    (recording, _) = tool.broad_recordings(None, "all", quick=False)
+
+    def gives_up(recording: object) -> tuple[np.ndarray, np.ndarray]:
+        n = len(recording.t)  # type: ignore[attr-defined]
+        q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+        q[n // 2 :] = np.nan
+        return q, np.tile(np.eye(6) * 1e-4, (n, 1, 1))
+
+    (scored,) = tool.run_all([recording], [tool.NamedEstimator("gives up", gives_up, "left")])
+    assert scored.tilt.samples == 1000  # of 2000: what the calibration is computed on
+    assert (
+        "covariance: gives up left 1000 of the 2000 scored samples of "
+        "07_undisturbed_fast_rotation_B 6-D without an estimate and covariance: scored on the "
+        "rest\n"
+    ) in capsys.readouterr().err

@@ -547,3 +547,41 @@ def test_mavest_inclination_on_broad_is_within_1_2_of_vqf(broad_trials: list) ->
         ours, theirs = result.mean("mavest", subset), result.mean("VQF", subset)
         assert ours <= 1.2 * theirs, (half, ours, theirs)
     assert np.all(np.isfinite(result.scores["mavest"]))
+
+
+def test_an_estimate_that_gives_up_where_it_is_worst_scores_nan() -> None:
+    """A filter that outputs NaN on its worst rows must not score better than one that
+    keeps estimating: rows with truth and no estimate make the figure NaN."""
+    from mavest.evaluation.metrics import missing_rows, scored_rows
+
+    q_true = random_quats(8, seed=5)
+    angles = np.deg2rad([1.0, 1.0, 1.0, 1.0, 9.0, 9.0, 9.0, 9.0])
+    q_est = quat_multiply(about_z(angles), q_true)
+    mask = np.ones(8, dtype=bool)
+    whole = rmse_deg(q_est, q_true, mask)["heading"]
+    assert whole == pytest.approx(np.sqrt(41.0), abs=1e-9)
+    q_est[4:] = np.nan  # the worse half left without an estimate
+    assert missing_rows(q_est, q_true, mask) == 4
+    assert all(np.isnan(v) for v in rmse_deg(q_est, q_true, mask).values())
+    q_est[:4] = 0.0  # a zero quaternion is no estimate either
+    assert missing_rows(q_est, q_true) == 8
+    # where the truth is lost or the row is not scored, a missing estimate costs nothing
+    q_true[4:6] = np.nan
+    mask[6:] = False
+    q_est[:4] = quat_multiply(about_z(angles[:4]), q_true[:4])
+    assert scored_rows(q_true, mask).tolist() == [True] * 4 + [False] * 4
+    assert missing_rows(q_est, q_true, mask) == 0
+    assert rmse_deg(q_est, q_true, mask)["heading"] == pytest.approx(1.0, abs=1e-9)
+    # nothing to score: no row in the mask with truth
+    assert not scored_rows(q_true, np.zeros(8, dtype=bool)).any()
+    assert np.isnan(rmse_deg(q_est, q_true, np.zeros(8, dtype=bool))["total"])
+
+
+def test_trial_parity_reads_the_leading_number_or_none() -> None:
+    from mavest.evaluation.metrics import trial_parity
+
+    assert trial_parity("07_undisturbed_fast_rotation_B") == 1
+    assert trial_parity("10_undisturbed_slow_translation_A") == 0
+    assert trial_parity("7_single_digit") == 1
+    assert trial_parity("lab_recording_A") is None
+    assert trial_parity("") is None

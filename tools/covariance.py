@@ -21,12 +21,16 @@ BROAD the optical frame's north is not the magnetic field's: a constant heading
 offset, fitted over the scored samples and shown, is removed before scoring (tilt is
 unaffected by it).
 
-mavest's defaults were chosen on all 22 shared BROAD trials: no BROAD figure here is
-held out, and the tables say so. --split odd|even keeps the odd- or even-numbered
-trials; --quick scores three BROAD trials (unless --trials names them) and one short
-flight per scenario. --results writes the printed tables as the "Covariance on real
-data" section of docs/results.md (or FILE). Exits 2, with one line, when BROAD or h5py
-is missing.
+mavest's defaults were chosen on 22 BROAD trials (mavest.datasets.broad.TUNED_ON):
+figures on those are in-sample. Each BROAD row and table is over one kind of trial,
+those the defaults were tuned on or those held out from them, and says which; a
+line after the summary counts them. A trial with nothing to score (no movement
+sample with truth) is left out, with a line. --split odd|even keeps the odd- or
+even-numbered trials (the number a trial's name starts with; a trial without one is
+left out, with a line); --quick scores three BROAD trials (unless --trials names
+them) and one short flight per scenario. --results writes the printed tables as the
+"Covariance on real data" section of docs/results.md (or FILE). Exits 2, with one
+line, when BROAD or h5py is missing.
 """
 
 from __future__ import annotations
@@ -48,10 +52,11 @@ import numpy as np
 import mavest
 from mavest import ConfigError, EstimatorConfig
 from mavest.datasets import DATA_ENV_VAR
-from mavest.datasets.broad import list_trials, load_trial
+from mavest.datasets.broad import list_trials, load_trials, tuned_on
 from mavest.evaluation import report
 from mavest.evaluation.calibration import Calibration, rank_correlation, score_attitude
 from mavest.evaluation.consistency import SCENARIOS, distinct_flights, simulate_scenario
+from mavest.evaluation.metrics import scored_rows, trial_parity
 
 PARTS = ("broad", "sim")
 SPLITS = ("all", "odd", "even")
@@ -61,17 +66,7 @@ QUICK_SECONDS = 30.0  # s: a simulated flight's length with --quick
 CALIBRATED = (0.6, 1.6)  # the ratio band counted as calibrated
 INFORMATIVE = 0.3  # ρ from which σ counts as informative
 TUNED = "defaults tuned on these"
-TUNED_NOTE = (
-    "BROAD: mavest's defaults were chosen on all 22 shared trials, so none of its BROAD "
-    "figures here is held out."
-)
-#: What was measured outside the project on BROAD trials the defaults were not chosen
-#: on, printed beside this run's figures.
-REPORTED_UNSEEN = (
-    "For comparison, reported on 8 BROAD trials outside the shared 22 (defaults not chosen "
-    "on them), 6-D tilt of mavest's default: ratio 0.25–0.80 per trial, σ ≈ 1.8° "
-    "(p1–p95 1.78–1.91°) on every trial, ρ −0.48."
-)
+HELD_OUT = "held out: defaults not tuned on these"
 
 
 class MissingInputError(Exception):
@@ -93,6 +88,8 @@ class Recording:
     # the truth's north is not the field's (BROAD's optical frame): fit and remove a
     # constant heading offset before scoring heading
     foreign_north: bool = False
+    # BROAD: mavest's defaults were chosen on this trial (its figures are in-sample)
+    tuned: bool = False
 
     @property
     def mode(self) -> str:
@@ -176,7 +173,10 @@ def broad_recordings(prefixes: Sequence[str] | None, split: str, quick: bool) ->
     except FileNotFoundError as error:
         raise MissingInputError(str(error)) from None
     if split != "all":
-        paths = [p for p in paths if int(p.stem[:2]) % 2 == (split == "odd")]
+        for path in paths:
+            if trial_parity(path.stem) is None:
+                _warn(f"--split {split}: {path.stem} has no trial number: left out")
+        paths = [p for p in paths if trial_parity(p.stem) == (split == "odd")]
     if quick and not prefixes and len(paths) > QUICK_TRIALS:
         picks = np.linspace(0, len(paths) - 1, QUICK_TRIALS).round().astype(int)
         paths = [paths[i] for i in picks]
@@ -184,8 +184,8 @@ def broad_recordings(prefixes: Sequence[str] | None, split: str, quick: bool) ->
         wanted = f" matching --trials {' '.join(prefixes)}" if prefixes else ""
         raise MissingInputError(f"no BROAD .hdf5 trial{wanted} in {DATA_ENV_VAR}'s broad/")
     recordings = []
-    for path in paths:
-        trial = load_trial(path)
+    # (a bad file, a copy of a trial, one with nothing to score: left out with a line)
+    for trial in load_trials(paths, _warn, scored_only=True):
         for mag in (None, trial.mag):
             recordings.append(
                 Recording(
@@ -198,9 +198,17 @@ def broad_recordings(prefixes: Sequence[str] | None, split: str, quick: bool) ->
                     trial.truth_q,
                     trial.movement,
                     foreign_north=True,
+                    tuned=tuned_on(trial.name),
                 )
             )
+    if not recordings:
+        raise MissingInputError("no BROAD trial here has a movement sample with truth to score")
     return recordings
+
+
+def _warn(text: str) -> None:
+    """One line on an input left out; the run goes on."""
+    print(f"covariance: {text}", file=sys.stderr, flush=True)
 
 
 def simulated_recordings(
@@ -273,6 +281,16 @@ def run_all(recordings: list[Recording], entries: list[NamedEstimator]) -> list[
         )
         for entry in entries:
             q, cov = entry.run(recording)
+            # the calibration skips samples without an estimate as it does lost truth:
+            # say so, so that a filter giving up where it is worst is not taken for honest
+            given = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+            rows = scored_rows(recording.truth_q, recording.scored)
+            if lacking := int(np.count_nonzero(rows & ~given)):
+                _warn(
+                    f"{entry.name} left {lacking} of the {np.count_nonzero(rows)} scored samples "
+                    f"of {recording.name} {recording.mode} without an estimate and covariance: "
+                    "scored on the rest"
+                )
             tilt, heading, offset = score(recording, q, cov, entry.error)
             results.append(Scored(entry.name, recording, tilt, heading, offset))
     return results
@@ -291,31 +309,70 @@ def _number(value: float, digits: int = 2) -> str:
     return "—" if not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def groups(
-    results: list[Scored],
-) -> dict[tuple[str, str, str, str], list[tuple[Scored, Calibration]]]:
-    """(estimator, source, mode, quantity) → its rows: an estimator's groups together, in
-    the order the estimators and recordings were run."""
+#: (estimator, source, mode, quantity, kind): kind is, on BROAD, TUNED or HELD_OUT
+Key = tuple[str, str, str, str, str]
+
+
+def _kind(recording: Recording) -> str:
+    """Which trials a BROAD recording's rows are pooled with: those mavest's defaults were
+    tuned on or those held out (a mean over both would be neither)."""
+    if recording.source != "BROAD":
+        return ""
+    return TUNED if recording.tuned else HELD_OUT
+
+
+def groups(results: list[Scored]) -> dict[Key, list[tuple[Scored, Calibration]]]:
+    """(estimator, source, mode, quantity, kind) → its rows: an estimator's groups
+    together, in the order the estimators and recordings were run, the trials it was
+    tuned on before those held out."""
     order = list(dict.fromkeys(r.estimator for r in results))
-    grouped: dict[tuple[str, str, str, str], list[tuple[Scored, Calibration]]] = {}
+    grouped: dict[Key, list[tuple[Scored, Calibration]]] = {}
     for r in sorted(results, key=lambda r: order.index(r.estimator)):  # stable
         quantities = [("tilt", r.tilt)] + ([("heading", r.heading)] if r.heading else [])
         for quantity, c in quantities:
-            key = (r.estimator, r.recording.source, r.recording.mode, quantity)
+            key = (r.estimator, r.recording.source, r.recording.mode, quantity, _kind(r.recording))
             grouped.setdefault(key, []).append((r, c))
-    return grouped
+    first = list(dict.fromkeys(key[:4] for key in grouped))
+    kinds = ["", TUNED, HELD_OUT]
+    keys = sorted(grouped, key=lambda k: (first.index(k[:4]), kinds.index(k[4])))
+    return {key: grouped[key] for key in keys}
 
 
-def _title(source: str, mode: str, quantity: str) -> str:
-    tuned = f" ({TUNED})" if source == "BROAD" else ""
-    return f"{source} {mode} {quantity}{tuned}"
+def _title(source: str, mode: str, quantity: str, kind: str) -> str:
+    return f"{source} {mode} {quantity}" + (f" ({kind})" if kind else "")
 
 
-def detail_table(key: tuple[str, str, str, str], rows: list[tuple[Scored, Calibration]]) -> str:
-    estimator, source, mode, quantity = key
+def tuned_note(recordings: Sequence[Recording]) -> str | None:
+    """How many of the BROAD trials here mavest's defaults were chosen on (None: no
+    BROAD trial), in words that are true of this selection."""
+    trials = {r.name: r.tuned for r in recordings if r.source == "BROAD"}
+    if not trials:
+        return None
+    n, tuned = len(trials), sum(trials.values())
+    if tuned == n:
+        these = "this trial" if n == 1 else f"all {n} of these trials"
+        return (
+            f"BROAD: mavest's defaults were chosen on {these}, so none of its BROAD figures "
+            "here is held out."
+        )
+    if tuned == 0:
+        these = "this trial" if n == 1 else f"any of these {n} trials"
+        return (
+            f"BROAD: mavest's defaults were not chosen on {these}: every BROAD figure here "
+            "is held out."
+        )
+    return (
+        f"BROAD: mavest's defaults were chosen on {tuned} of these {n} trials (rows "
+        f'"{TUNED}"); the other {n - tuned} {"is" if n - tuned == 1 else "are"} held out '
+        f'(rows "{HELD_OUT}").'
+    )
+
+
+def detail_table(key: Key, rows: list[tuple[Scored, Calibration]]) -> str:
+    estimator, source, mode, quantity, kind = key
     offset = source == "BROAD" and mode == "9-D"
     lines = [
-        f"### {estimator}: {_title(source, mode, quantity)}",
+        f"### {estimator}: {_title(source, mode, quantity, kind)}",
         "",
         "| recording | samples | RMSE ° | σ/axis mean ° | σ/axis p1–p95 ° | ratio | inside 95 % "
         "| ρ (windows) |" + (" north offset ° |" if offset else ""),
@@ -333,9 +390,7 @@ def detail_table(key: tuple[str, str, str, str], rows: list[tuple[Scored, Calibr
     return "\n".join(lines)
 
 
-def summary_table(
-    grouped: dict[tuple[str, str, str, str], list[tuple[Scored, Calibration]]],
-) -> str:
+def summary_table(grouped: dict[Key, list[tuple[Scored, Calibration]]]) -> str:
     low, high = CALIBRATED
     lines = [
         "| estimator | data | recordings | ratio min–max | ratio in "
@@ -344,7 +399,7 @@ def summary_table(
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key, rows in grouped.items():
-        estimator, source, mode, quantity = key
+        estimator, source, mode, quantity, kind = key
         ratios = [c.ratio for _, c in rows if math.isfinite(c.ratio)]
         rhos = [c.rank_correlation for _, c in rows if math.isfinite(c.rank_correlation)]
         calibrated = sum(low <= x <= high for x in ratios)
@@ -357,7 +412,7 @@ def summary_table(
         )
         spread = f"{min(ratios):.2f}–{max(ratios):.2f}" if ratios else "—"
         lines.append(
-            f"| {estimator} | {_title(source, mode, quantity)} | {len(rows)} | {spread} | "
+            f"| {estimator} | {_title(source, mode, quantity, kind)} | {len(rows)} | {spread} | "
             f"{calibrated} of {len(rows)} | "
             f"{_number(statistics.median(rhos)) if rhos else '—'} | {informative} of "
             f"{len(rows)} | {_number(pooled)} | {100.0 * inside:.1f} % | {_deg(sigma)} |"
@@ -436,8 +491,8 @@ def main(argv: list[str] | None = None) -> int:
             "RMS σ against RMS error over 1 s windows.\n"
         )
         print(summary_table(grouped))
-        if any(r.recording.source == "BROAD" for r in results):
-            print(f"\n{TUNED_NOTE} {REPORTED_UNSEEN}")
+        if note := tuned_note(recordings):
+            print(f"\n{note}")
         for key, rows in grouped.items():
             print(f"\n{detail_table(key, rows)}")
     print(f"wall time {time.perf_counter() - started:.0f} s", file=sys.stderr)

@@ -11,17 +11,27 @@ variants), VQF, x-io Fusion and the ``ahrs`` package's Madgwick and Mahony (with
 --offline also the estimates that see the whole recording: mavest smoothed,
 ``mavest.smooth``, and offline VQF, ``vqf.offlineVQF``), on
 
-* BROAD ($MAVEST_DATA/broad, 22 trials with optical truth), scored as the dataset
+* BROAD ($MAVEST_DATA/broad, trials with optical truth), scored as the dataset
   does (RMSE over the movement phases, mean over trials): 6-D inclination, and with
-  the magnetometer 9-D total and heading;
-* the autopilot logs ($MAVEST_DATA/dataflash, ulog): 6-D from the logged IMU, slerped
+  the magnetometer 9-D total and heading. mavest's defaults were chosen on 22 of its
+  trials (mavest.datasets.broad.TUNED_ON): the means, and the per-trial counts against
+  VQF, are given apart for those and for the trials held out from it, and --detail
+  marks the former with *. A trial with nothing to score (no movement sample with
+  truth) is left out with a line; a filter that leaves a scored sample without an
+  estimate scores n/a on that trial, with a line (mavest.evaluation.metrics.rmse_deg);
+* three autopilot logs ($MAVEST_DATA/dataflash, ulog) whose phases are known:
+  6-D from the logged IMU, slerped
   onto the autopilot's own attitude (ArduPilot ATT and AHR2 with the AHRS trim added
   back, EKF1 in --detail: it equals ATT from 10 s on; PX4 vehicle_attitude) and, for
   the PX4 simulator log, onto its true attitude; and onto a reference no estimator
   wrote, the accelerometer's gravity direction in the still seconds of stretches the
   vehicle lies in (log171 before take-off and upside down after its crash, the PX4
   log at rest). Against the truth and the accelerometer the autopilot is a column
-  too; inclination RMSE per segment;
+  too; inclination RMSE per segment. Each file is checked to be the recording its
+  phases were written for (its first IMU sample's time and values): another log under
+  its name is refused with a line, a shortened one is scored up to its end with a
+  line naming the phases it lacks, and the other logs in those folders are named in
+  a line, not scored;
 * JSBSim flights as ``make demo`` makes them (Cessna 172, ArduPilot RAW_IMU at 400 Hz
   with noise, bias and quantisation; one per seed): every filter fed the same IMU
   samples read back from the tlog (6-D), tilt RMSE against the flight model's truth
@@ -55,7 +65,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mavest.datasets import DATA_ENV_VAR
+from mavest.datasets import DATA_ENV_VAR, require_data
 from mavest.datasets.autopilot_logs import (
     DATAFLASH_LOG171,
     ULOG_REAL,
@@ -65,11 +75,16 @@ from mavest.datasets.autopilot_logs import (
     load_ulog,
     log_path,
 )
-from mavest.datasets.broad import BroadTrial, list_trials, load_trial
+from mavest.datasets.broad import BroadTrial, list_trials, load_trials, tuned_on
 from mavest.evaluation import report
 from mavest.evaluation.accuracy import MAVEST_VARIANTS, mavest_adapter
 from mavest.evaluation.logs import Score, Segment, gravity_at_rest, score_segments, slerp_onto
-from mavest.evaluation.metrics import attitude_errors, rmse_deg
+from mavest.evaluation.metrics import (
+    attitude_errors,
+    missing_rows,
+    rmse_deg,
+    trial_parity,
+)
 from mavest.evaluation.peers import PEERS, PeerAdapter
 from mavest.so3 import euler_zyx_from_quats, quats_from_euler_zyx
 
@@ -88,16 +103,50 @@ AUTOPILOT = "autopilot"  # its own estimate, against a simulator's truth
 SERVED = "mavest as served"  # the service on the flight's tlog, GPS-aided, 9-D
 FLIGHT_RATE = 400.0  # Hz, as `make demo`
 ALL = Segment("all", 0.0, np.inf)
-# mavest's default parameters were chosen on BROAD's 22 trials: its BROAD figures are
-# not held out, and the main table says so (--detail adds the even and odd halves).
+# mavest's default parameters were chosen on 22 BROAD trials (tuned_on): figures on
+# those are not held out, and every mean says which kind of trial it is over.
 TUNED = " (mavest tuned on these trials)"
+HELD_OUT = " (held out: mavest not tuned on these trials)"
+KINDS = {"tuned on": TUNED, "held out": HELD_OUT}  # a kind of trial → its main-table words
+TUNED_MARK = " *"  # --detail: after the name of a trial mavest was tuned on
 
-#: Log file → (label, segments, further references shown in the main table). The
-#: log171 segments follow the data README (at rest, flying, crash and flip); the
-#: pyulog_sample log is moved by hand for its first 10 s, then rests. A log without
-#: segments is shown whole.
-LOGS: dict[str, tuple[str, list[Segment], tuple[str, ...]]] = {
-    DATAFLASH_LOG171: (
+
+@dataclass(frozen=True)
+class KnownLog:
+    """A log whose phases are known, and how to tell it is that recording: the time
+    (s since boot) and specific force (m/s², FRD) of its first IMU sample, which a
+    shortened copy keeps, and the span of its IMU samples (s)."""
+
+    label: str
+    segments: list[Segment]  # none: the log is shown whole
+    shown_references: tuple[str, ...]  # further references shown in the main table
+    boot_time: float
+    first_accel: tuple[float, float, float]
+    duration: float
+
+    def mismatch(self, log: AutopilotLog) -> str | None:
+        """Why ``log`` is not this recording (None: it is, perhaps shortened)."""
+        if abs(log.boot_time - self.boot_time) > 1e-3 or not np.allclose(
+            log.accel[0], self.first_accel, atol=1e-4
+        ):
+            return (
+                f"its first IMU sample ({log.boot_time:.3f} s since boot) is not "
+                f"{self.label}'s ({self.boot_time:.3f} s)"
+            )
+        if log.duration > self.duration + 1.0:
+            return f"it spans {log.duration:.0f} s, {self.label} {self.duration:.0f} s"
+        return None
+
+    def shortened(self, log: AutopilotLog) -> bool:
+        """Whether ``log`` ends before this recording does (a cut copy)."""
+        return log.duration < self.duration - 1.0
+
+
+#: Log file → what is known of it. The log171 segments follow the data README (at rest,
+#: flying, crash and flip); the pyulog_sample log is moved by hand for its first 10 s,
+#: then rests. Identities measured on the shared copies.
+LOGS: dict[str, KnownLog] = {
+    DATAFLASH_LOG171: KnownLog(
         "ArduCopter log171",
         [
             Segment("rest", 0.0, 60.0),
@@ -105,14 +154,24 @@ LOGS: dict[str, tuple[str, list[Segment], tuple[str, ...]]] = {
             Segment("crash", 200.0, np.inf),
         ],
         ("AHR2",),
+        11.46,
+        (-0.07167864, -0.62707001, -9.58753395),
+        242.601,
     ),
-    ULOG_REAL: (
+    ULOG_REAL: KnownLog(
         "PX4 pyulog_sample",
         [Segment("moved by hand", 0.0, 10.0), Segment("rest", 10.0, np.inf)],
         (),
+        112.614307,
+        (1.10714173, -0.48647752, -9.63039494),
+        68.879,
     ),
-    ULOG_SIMULATOR: ("PX4 simulator", [], ()),
+    ULOG_SIMULATOR: KnownLog(
+        "PX4 simulator", [], (), 0.284, (0.05289749, 0.01440491, -9.90560532), 10.768
+    ),
 }
+#: The suffixes of the logs looked for beside them (case-insensitive).
+LOG_SUFFIXES = (".bin", ".ulg")
 
 #: A reference no estimator wrote (:func:`~mavest.evaluation.logs.gravity_at_rest`):
 #: the accelerometer's gravity direction in 1 s windows where the vehicle lies still,
@@ -123,19 +182,27 @@ RESTING = "accelerometer at rest"
 VIOLENT_RATE = np.radians(100.0)
 
 
-def still_spans(relative: str, log: AutopilotLog) -> list[Segment]:
+def still_spans(relative: str, log: AutopilotLog, whole: bool = True) -> list[Segment]:
     """The stretches of this log whose vehicle is known to lie still (none: no reference).
 
     log171: before take-off (the data README), and upside down after the flip, from
-    its last rate above VIOLENT_RATE; pyulog_sample: resting after the first 10 s.
+    its last rate above VIOLENT_RATE; a shortened copy (not ``whole``) lacks the end it
+    lies upside down in. pyulog_sample: resting after the first 10 s.
     """
     if relative == DATAFLASH_LOG171:
+        if not whole:
+            return [Segment("rest", 0.0, 60.0)]
         violent = np.flatnonzero(np.linalg.norm(log.gyro, axis=1) > VIOLENT_RATE)
         after = float(log.t[violent[-1]]) if violent.size else log.duration
         return [Segment("rest", 0.0, 60.0), Segment("upside down", after, np.inf)]
     if relative == ULOG_REAL:
         return [Segment("rest", 10.0, np.inf)]
     return []
+
+
+def _warn(text: str) -> None:
+    """One line on a problem with an input; the run goes on."""
+    print(f"evidence: {text}", file=sys.stderr, flush=True)
 
 
 class MissingInputError(Exception):
@@ -213,10 +280,23 @@ class BroadResult:
     # trial name → filter → per-sample error (rad): 6-D inclination, 9-D heading
     inclination_curves: dict[str, dict[str, np.ndarray]]
     heading_curves: dict[str, dict[str, np.ndarray]]
+    # the scored samples a filter left without an estimate, making its figure n/a
+    notes: list[str] = field(default_factory=list)
+
+    def kinds(self) -> list[tuple[str, list[int]]]:
+        """The trials mavest was tuned on and those held out from it: ("tuned on" or
+        "held out", trial indices), each kind that is present."""
+        tuned = [i for i, trial in enumerate(self.trials) if tuned_on(trial.name)]
+        held_out = [i for i in range(len(self.trials)) if i not in tuned]
+        return [
+            (kind, part) for kind, part in (("tuned on", tuned), ("held out", held_out)) if part
+        ]
 
 
 def load_broad(prefixes: Sequence[str] | None) -> list[BroadTrial]:
-    """The BROAD trials (those whose names start with one of ``prefixes``, if given)."""
+    """The BROAD trials (those whose names start with one of ``prefixes``, if given) that
+    have something to score; one without (no movement sample with truth) is left out
+    of every mean and count, with a line."""
     try:
         paths = list_trials(prefixes=prefixes)
     except FileNotFoundError as error:
@@ -224,17 +304,29 @@ def load_broad(prefixes: Sequence[str] | None) -> list[BroadTrial]:
     if not paths:
         wanted = f" matching --trials {' '.join(prefixes)}" if prefixes else ""
         raise MissingInputError(f"no BROAD .hdf5 trial{wanted} in {DATA_ENV_VAR}'s broad/")
-    return [load_trial(p) for p in paths]
+    # (a bad file, a copy of a trial, one with nothing to score: left out with a line)
+    trials = list(load_trials(paths, _warn, scored_only=True))
+    if not trials:
+        raise MissingInputError("no BROAD trial here has a movement sample with truth to score")
+    return trials
 
 
 def run_broad(trials: list[BroadTrial], filters: Filters) -> BroadResult:
+    """Every filter on every trial (each with something to score: :func:`load_broad`)."""
     result = BroadResult(trials, {}, {}, {}, {}, {})
     for index, trial in enumerate(trials, 1):
         _progress(f"BROAD {trial.name} ({index}/{len(trials)})")
+        scored = int(np.count_nonzero(trial.scored))
         for mag in (None, trial.mag):
             estimates = filters.run_all(trial.t, trial.gyro, trial.accel, mag, trial.rate)
             for name, q in estimates.items():
                 rmse = rmse_deg(q, trial.truth_q, trial.movement)
+                if missing := missing_rows(q, trial.truth_q, trial.movement):
+                    result.notes.append(
+                        f"{name} left {missing} of the {scored} scored samples of "
+                        f"{trial.name} ({'6-D' if mag is None else '9-D'}) without an "
+                        "estimate: n/a there and in its means"
+                    )
                 if mag is None:
                     result.inclination_6d.setdefault(name, []).append(rmse["inclination"])
                 else:
@@ -274,23 +366,53 @@ class LogsResult:
 
 
 def load_logs() -> list[tuple[str, AutopilotLog]]:
-    """Every log of :data:`LOGS`; MissingInputError when a file or pyulog is absent."""
+    """The logs of :data:`LOGS` that are there and are the recordings their phases were
+    written for; each other one is named in a line and left out, and so, in one line,
+    are the logs beside them that this part does not score. MissingInputError when
+    pyulog is absent or none of :data:`LOGS` can be scored."""
     try:
         importlib.import_module("pyulog")
     except ImportError:
         raise MissingInputError("pyulog (dev extra) is needed to read the PX4 logs") from None
-    logs = []
-    for relative in LOGS:
+    logs, refused = [], []
+    for relative, known in LOGS.items():
         try:
             path = log_path(relative)
             log = load_dataflash(path) if relative.endswith(".bin") else load_ulog(path)
         except (FileNotFoundError, ValueError) as error:
-            raise MissingInputError(
-                f"{relative}: {error} (set {DATA_ENV_VAR} to the folder with dataflash/ and "
-                "ulog/, or leave logs out of --parts)"
-            ) from None
+            refused.append(f"{relative}: {error}")
+            continue
+        if reason := known.mismatch(log):
+            refused.append(f"{relative} is not the log its phases belong to: {reason}")
+            continue
         logs.append((relative, log))
+    if not logs:
+        raise MissingInputError(
+            f"no autopilot log to score ({refused[0]}; set {DATA_ENV_VAR} to the folder with "
+            "dataflash/ and ulog/, or leave logs out of --parts)"
+        )
+    for reason in refused:
+        _warn(f"{reason}: not scored")
+    if others := unscored_logs():
+        _warn(f"other logs, not scored (their phases are not known): {', '.join(others)}")
     return logs
+
+
+def unscored_logs() -> list[str]:
+    """The logs in the folders of :data:`LOGS` (relative to the data root) that are not
+    among them."""
+    found = []
+    for folder in sorted({relative.partition("/")[0] for relative in LOGS}):
+        try:
+            paths = sorted(require_data(folder).iterdir())
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+        found += [
+            f"{folder}/{path.name}"
+            for path in paths
+            if path.suffix.lower() in LOG_SUFFIXES and f"{folder}/{path.name}" not in LOGS
+        ]
+    return found
 
 
 def _short_source(source: str) -> str:
@@ -301,7 +423,25 @@ def _short_source(source: str) -> str:
 def run_logs(logs: list[tuple[str, AutopilotLog]], filters: Filters) -> LogsResult:
     result = LogsResult([], [])
     for relative, log in logs:
-        label, segments, shown_references = LOGS[relative]
+        known = LOGS[relative]
+        label, shown_references = known.label, known.shown_references
+        whole = not known.shortened(log)
+        # a shortened copy is scored up to its end: the phases it does not reach are left
+        # out, with a line
+        segments = [segment for segment in known.segments if segment.start < log.duration]
+        spans = [span for span in still_spans(relative, log, whole) if span.start < log.duration]
+        if not whole:
+            lacked = [s.describe(known.duration) for s in known.segments if s not in segments]
+            lacked += [
+                f"{s.label} ({RESTING})"
+                for s in still_spans(relative, log)
+                if s.label not in {span.label for span in spans}
+            ]
+            _warn(
+                f"{label} ({relative}) ends at {log.duration:.0f} s, not "
+                f"{known.duration:.0f} s: scored up to its end"
+                + (f", without {', '.join(lacked)}" if lacked else "")
+            )
         _progress(f"log {label}")
         estimates = filters.run_all(log.t, log.gyro, log.accel, None, log.rate)
         candidates = {name: (log.t, q) for name, q in estimates.items()}
@@ -324,7 +464,7 @@ def run_logs(logs: list[tuple[str, AutopilotLog]], filters: Filters) -> LogsResu
             comparisons.append(
                 ("ground truth", log.truth_t, log.truth_q, True, with_autopilot, everywhere)
             )
-        if spans := still_spans(relative, log):
+        if spans:
             still_t, still_q = gravity_at_rest(log.t, log.gyro, log.accel, spans)
             comparisons.append((RESTING, still_t, still_q, True, with_autopilot, spans))
         shown_segments = [*segments, *spans] or [ALL]
@@ -496,8 +636,13 @@ def format_table(
     )
 
 
-def _mean(values: dict[str, list[float]]) -> dict[str, float]:
-    return {name: float(np.mean(v)) for name, v in values.items()}
+def _mean(values: dict[str, list[float]], subset: list[int] | None = None) -> dict[str, float]:
+    """Per column the mean of its values (of those at ``subset``, if given); n/a when
+    one of them is."""
+    return {
+        name: float(np.mean(np.asarray(v)[subset] if subset is not None else v))
+        for name, v in values.items()
+    }
 
 
 def main_rows(
@@ -505,12 +650,17 @@ def main_rows(
 ) -> list[Row]:
     rows = []
     if broad is not None:
-        n = len(broad.trials)
-        rows += [
-            Row(f"BROAD 6-D inclination, mean of {n}{TUNED}", _mean(broad.inclination_6d), 3),
-            Row(f"BROAD 9-D total, mean of {n}{TUNED}", _mean(broad.total_9d), 3),
-            Row(f"BROAD 9-D heading, mean of {n}{TUNED}", _mean(broad.heading_9d), 3),
-        ]
+        # apart for the trials mavest was tuned on and those held out: a mean over both
+        # would be neither in-sample nor a check
+        for title, values in (
+            ("BROAD 6-D inclination", broad.inclination_6d),
+            ("BROAD 9-D total", broad.total_9d),
+            ("BROAD 9-D heading", broad.heading_9d),
+        ):
+            rows += [
+                Row(f"{title}, mean of {len(subset)}{KINDS[kind]}", _mean(values, subset), 3)
+                for kind, subset in broad.kinds()
+            ]
     if logs is not None:
         rows += [
             Row(
@@ -554,35 +704,58 @@ def detail_tables(
     same_imu = filters.online
     tables = []
     if broad is not None:
-        even = [i for i, t in enumerate(broad.trials) if int(t.name[:2]) % 2 == 0]
-        odd = [i for i, t in enumerate(broad.trials) if int(t.name[:2]) % 2 == 1]
+        kinds = broad.kinds()
         for title, values in (
             ("BROAD 6-D inclination RMSE (°)", broad.inclination_6d),
             ("BROAD 9-D total RMSE (°)", broad.total_9d),
             ("BROAD 9-D heading RMSE (°)", broad.heading_9d),
         ):
             rows = [
-                Row(trial.name, {name: values[name][i] for name in names})
+                Row(
+                    trial.name + (TUNED_MARK if tuned_on(trial.name) else ""),
+                    {name: values[name][i] for name in names},
+                )
                 for i, trial in enumerate(broad.trials)
             ]
-            # mavest's defaults were chosen on all 22 trials: the halves show whether the
-            # margin carries over to trials that were not looked at.
-            for label, subset in (("mean", None), ("mean, even", even), ("mean, odd", odd)):
-                if subset != []:
-                    picked = {n: np.asarray(v)[subset] if subset else v for n, v in values.items()}
-                    rows.append(Row(label, _mean(picked), 3))
+            for kind, subset in kinds:
+                # with both kinds present, each row says which one it is over
+                of = f", {kind}" if len(kinds) > 1 else ""
+                # and its halves by trial number: whether a margin holds across the trials
+                parity = {i: trial_parity(broad.trials[i].name) for i in subset}
+                for label, part in (
+                    (f"mean{of}", subset),
+                    (f"mean{of}, even", [i for i in subset if parity[i] == 0]),
+                    (f"mean{of}, odd", [i for i in subset if parity[i] == 1]),
+                ):
+                    if part:
+                        rows.append(Row(label, _mean(values, part), 3))
             for peer in ("VQF", OFFLINE_VQF):
-                if peer in values:
-                    reference = np.asarray(values[peer])
+                if peer not in values:
+                    continue
+                for kind, subset in kinds:
+                    of = f", {kind} (of {len(subset)})" if len(kinds) > 1 else ""
+                    reference = np.asarray(values[peer])[subset]
+                    below = {n: np.asarray(values[n])[subset] <= reference for n in names}
                     rows.append(
                         Row(
-                            f"trials at or below {peer}",
-                            {n: float(np.sum(np.asarray(values[n]) <= reference)) for n in names},
+                            f"trials at or below {peer}{of}",
+                            {n: float(np.sum(b)) for n, b in below.items()},
                             digits=0,
                             bold_lowest=False,
                         )
                     )
             tables.append(format_table(title, names, rows, markdown, same_imu))
+        legend = []
+        if any(tuned_on(trial.name) for trial in broad.trials):
+            legend.append(
+                f"A{TUNED_MARK} after a trial's name: mavest's defaults were chosen on it."
+            )
+        if unnumbered := [t.name for t in broad.trials if trial_parity(t.name) is None]:
+            legend.append(
+                f"In neither the even nor the odd mean (no number): {', '.join(unnumbered)}."
+            )
+        if legend:
+            tables.append(" ".join(legend))
     if logs is not None:
         columns = names + ([AUTOPILOT] if any(AUTOPILOT in s.scores for s in logs.scores) else [])
         rows = [
@@ -753,7 +926,9 @@ def plot_log171(logs: LogsResult, path: Path) -> Path:
     bottom.set_xlabel("time (s from the first IMU sample)")
     bottom.set_ylim(1e-2, 200.0)
     bottom.legend(fontsize=8, loc="upper left")
-    for segment in LOGS[DATAFLASH_LOG171][1]:
+    for segment in LOGS[DATAFLASH_LOG171].segments:
+        if segment.start >= log.duration:  # a shortened copy
+            continue
         for axis in (top, bottom):
             axis.axvline(segment.start, color="0.5", lw=0.8, ls="--")
         top.text(segment.start + 1.0, 0.9, segment.label, transform=top.get_xaxis_transform())
@@ -853,7 +1028,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"evidence: {error}", file=sys.stderr)
         return 2
 
-    np.seterr(all="ignore")  # the peers' NaN on lost truth rows are skipped by the scoring
+    # the error curves are NaN where the truth is lost (drawn as gaps); the scoring skips
+    # those rows, and a filter's own NaN on a scored row makes its figure n/a, with a line
+    np.seterr(all="ignore")
     broad = run_broad(trials, filters) if trials is not None else None
     logs = run_logs(loaded_logs, filters) if loaded_logs is not None else None
     flights = run_flights(args.seeds, args.seconds, filters) if "flights" in args.parts else None
@@ -870,6 +1047,8 @@ def main(argv: list[str] | None = None) -> int:
                 filters.online,
             )
         )
+        if broad is not None and broad.notes:
+            print("\n" + "\n".join(("- " if markdown else "") + note for note in broad.notes))
         if args.detail:
             for table in detail_tables(filters, broad, logs, flights, markdown):
                 print(f"\n{table}")

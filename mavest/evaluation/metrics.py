@@ -16,8 +16,11 @@ on the world side. With q_err = (w, x, y, z):
 These are an exact swing–twist split: q_err = q_twist ⊗ q_swing with q_twist about
 world z and q_swing about a horizontal axis. The world z axis is vertical in both ENU
 (the dataset) and NED (mavest), so the formulas hold unchanged for FRD → NED
-quaternions. The score of a trial is the RMSE over the ``movement`` samples, with
-``nanmean`` so that samples whose truth is NaN (lost optical tracking) are skipped.
+quaternions. The score of a trial is the RMSE over the ``movement`` samples whose truth
+is finite (:func:`scored_rows`; lost optical tracking is skipped). An estimate must
+cover every one of those rows: one it left non-finite makes the score NaN
+(:func:`rmse_deg`, :func:`missing_rows`), since skipping it would reward a filter for
+giving up where it is worst.
 
 A 6-D filter (no magnetometer) has no heading reference: compare its inclination only,
 or first apply :func:`remove_heading_offset`.
@@ -27,6 +30,7 @@ Quaternions are (w, x, y, z), Hamilton, body → world, float64, shape (N, 4) or
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,11 +41,14 @@ __all__ = [
     "attitude_errors",
     "error_quaternion",
     "heading_offset",
+    "missing_rows",
     "quat_conjugate",
     "quat_multiply",
     "remove_heading_offset",
     "rmse_deg",
+    "scored_rows",
     "signed_heading_error",
+    "trial_parity",
 ]
 
 
@@ -109,19 +116,43 @@ def attitude_errors(q_est: np.ndarray, q_true: np.ndarray) -> AttitudeErrors:
     return AttitudeErrors(total=total, heading=heading, inclination=inclination)
 
 
-def _select(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-    if mask is None:
-        return values
+def _boolean(mask: np.ndarray) -> np.ndarray:
     mask = np.asarray(mask)
     if mask.dtype != bool:
         raise TypeError("mask must be a boolean array (e.g. BroadTrial.movement)")
-    return values[mask]
+    return mask
+
+
+def _select(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    return values if mask is None else values[_boolean(mask)]
 
 
 def _rms(values: np.ndarray) -> float:
-    """sqrt(nanmean(values²)); NaN (not a warning) when no finite value is left."""
+    """sqrt(mean(values²)) of the finite values; NaN (not a warning) when none is left."""
     finite = values[np.isfinite(values)]
     return float(np.sqrt(np.mean(finite * finite))) if finite.size else float("nan")
+
+
+def _valid(q: np.ndarray) -> np.ndarray:
+    """(N,) bool: the rows of ``q`` that are a rotation (finite, not all zero)."""
+    q = np.asarray(q, dtype=np.float64)
+    return np.all(np.isfinite(q), axis=-1) & np.any(q != 0.0, axis=-1)
+
+
+def scored_rows(q_true: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: the rows a score counts, those inside ``mask`` (every row when None;
+    BROAD: ``movement``) whose truth is a rotation (not NaN: tracking was not lost).
+
+    A recording with none of them has nothing to score.
+    """
+    rows = _valid(q_true)
+    return rows if mask is None else rows & _boolean(mask)
+
+
+def missing_rows(q_est: np.ndarray, q_true: np.ndarray, mask: np.ndarray | None = None) -> int:
+    """How many of the :func:`scored_rows` the estimate leaves without a rotation
+    (non-finite or zero): each makes :func:`rmse_deg` NaN."""
+    return int(np.count_nonzero(scored_rows(q_true, mask) & ~_valid(q_est)))
 
 
 def rmse_deg(
@@ -129,15 +160,28 @@ def rmse_deg(
 ) -> dict[str, float]:
     """RMSE in degrees of the total, heading and inclination errors, as BROAD scores them.
 
-    Only samples where ``mask`` is True (BROAD: ``movement``) and the truth is finite count.
-    Returns ``{"total": …, "heading": …, "inclination": …}``.
+    The rows counted are :func:`scored_rows`: inside ``mask`` (BROAD: ``movement``) with
+    a finite truth; rows whose truth is NaN are skipped. The estimate is not given that
+    grace: if it is non-finite on any counted row (:func:`missing_rows` says how many),
+    every figure is NaN, as it is when no row is counted. Returns ``{"total": …,
+    "heading": …, "inclination": …}``.
     """
-    errors = attitude_errors(q_est, q_true)
+    rows = scored_rows(q_true, mask)
+    if not rows.any() or np.any(rows & ~_valid(q_est)):
+        return dict.fromkeys(("total", "heading", "inclination"), float("nan"))
+    errors = attitude_errors(np.asarray(q_est)[rows], np.asarray(q_true)[rows])
     return {
-        "total": float(np.degrees(_rms(_select(errors.total, mask)))),
-        "heading": float(np.degrees(_rms(_select(errors.heading, mask)))),
-        "inclination": float(np.degrees(_rms(_select(errors.inclination, mask)))),
+        "total": float(np.degrees(_rms(errors.total))),
+        "heading": float(np.degrees(_rms(errors.heading))),
+        "inclination": float(np.degrees(_rms(errors.inclination))),
     }
+
+
+def trial_parity(name: str) -> int | None:
+    """0 or 1, the parity of a BROAD trial's number (the digits its name starts with:
+    ``"07_undisturbed_fast_rotation_B"`` → 1); None for a name that starts with none."""
+    number = re.match(r"\d+", name)
+    return int(number.group()) % 2 if number else None
 
 
 def signed_heading_error(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
