@@ -45,14 +45,7 @@ def test_each_profile_file_holds_the_choice_its_section_reports() -> None:
         config = EstimatorConfig.from_toml(ROOT / profile.config_file)
         section = results.split(f"## {profile.title}\n", 1)[1].split("<!-- END", 1)[0]
         rule = section.split("The rule applied to all 22 trials", 1)[1]
-        for key in (
-            "gyro_noise_density",
-            "gyro_scale_noise_density",
-            "velocity_adapt_time",
-            "velocity_time",
-            "accel_alignment_sigma",
-            "mag_heading_noise_density",
-        ):
+        for key in tool.RULE_KEYS:
             value = rule.split(f"{key} ", 1)[1].split(" ", 1)[0].rstrip(",.s°")
             if key == "accel_alignment_sigma":  # (printed in degrees)
                 value = str(math.radians(float(value)))

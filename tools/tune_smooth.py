@@ -26,8 +26,6 @@ exit 2.
 from __future__ import annotations
 
 import argparse
-import importlib
-import itertools
 import statistics
 import sys
 import time
@@ -38,11 +36,9 @@ from mavest import EstimatorConfig
 from mavest.datasets.broad import (
     TUNED_ON,
     BroadTrial,
-    broad_dir,
     halves,
-    list_trials,
-    load_trials,
     trial_labels,
+    trials_to_split,
     tuned_on,
 )
 from mavest.evaluation import report
@@ -209,24 +205,7 @@ def _load(quick: bool) -> list[BroadTrial] | None:
     def say(line: str) -> None:
         print(f"tune_smooth: {line}", file=sys.stderr, flush=True)
 
-    try:
-        importlib.import_module("h5py")
-        paths = list_trials()
-    except ImportError:
-        say("the package h5py (dev extra) is needed to read BROAD")
-        return None
-    except FileNotFoundError as error:
-        say(str(error))
-        return None
-    loaded = load_trials(paths, say, scored_only=True)
-    trials = list(itertools.islice(loaded, QUICK_TRIALS) if quick else loaded)
-    if len(trials) < 2:
-        say(
-            f"needs two BROAD trials with something to score to split them, found "
-            f"{len(trials)} in {broad_dir()}"
-        )
-        return None
-    return trials
+    return trials_to_split(say, QUICK_TRIALS if quick else None)
 
 
 if __name__ == "__main__":

@@ -45,6 +45,7 @@ h5py is a development extra, so it is imported inside :func:`load_trial`.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -68,6 +69,7 @@ __all__ = [
     "load_trial",
     "load_trials",
     "trial_labels",
+    "trials_to_split",
     "truth_from_opt_quat",
     "tuned_on",
 ]
@@ -397,3 +399,32 @@ def load_trials(
                 "by interpolation and not scored"
             )
         yield trial
+
+
+def trials_to_split(
+    say: Callable[[str], None], limit: int | None = None
+) -> list[BroadTrial] | None:
+    """The trials of the data root's BROAD folder that a tool splits in halves to choose
+    parameters on one and report on the other (the first ``limit`` usable ones, if
+    given), loaded as :func:`load_trials` does; or None after one line (``say``) saying
+    why there are not two: h5py absent, no BROAD folder, fewer than two to score."""
+    import importlib
+
+    try:
+        importlib.import_module("h5py")
+        paths = list_trials()
+    except ImportError:
+        say("the package h5py (dev extra) is needed to read BROAD")
+        return None
+    except FileNotFoundError as error:
+        say(str(error))
+        return None
+    loaded = load_trials(paths, say, scored_only=True)
+    trials = list(itertools.islice(loaded, limit) if limit is not None else loaded)
+    if len(trials) < 2:
+        say(
+            f"needs two BROAD trials with something to score to split them, found "
+            f"{len(trials)} in {broad_dir()}"
+        )
+        return None
+    return trials
