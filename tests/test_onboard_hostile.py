@@ -498,3 +498,17 @@ def test_a_log_too_short_to_score_says_so(tmp_path: Path) -> None:
     scored = ServiceConfig().replace(input={"settle_time": 1.0})
     summary = asyncio.run(replay(path, scored, progress=False)).summary()
     assert "vs autopilot ATTITUDE after 1 s:" in summary and "not scored" not in summary
+
+
+def test_an_instance_of_one_corrupt_record_is_no_stream(tmp_path: Path) -> None:
+    """One damaged record can name an IMU instance the log never had (44, at a wild time):
+    it made a stream of no sample, listed as "IMU instance 44 (IMU): 0 samples"."""
+    log = DataflashWriter()
+    log.define(200, "IMU", "QBffffff", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ")
+    for k in range(1000):
+        log.record("IMU", START_US + STEP_US * k, 0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.80665)
+        if k == 500:
+            log.record("IMU", 2**62, 44, 0.0, 0.0, 0.0, 0.0, 0.0, -9.80665)
+    loaded = load(log.save(tmp_path / "one_bad.bin"))
+    assert [imu.instance for imu in loaded.imus] == [0]
+    assert "IMU instance 44 (IMU): no usable sample, left out" in loaded.notes

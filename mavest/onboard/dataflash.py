@@ -673,7 +673,10 @@ def load_dataflash(path: Path | str) -> OnboardLog:
     before = len(build.notes)
     for name, instance, rows in instances(records, _IMU_NAMES, build.notes):
         stream = build.attempt(_imu, build, name, instance, rows)
-        if stream is not None:
+        if stream is not None and not len(stream.t_us):
+            # (one corrupt record can name an instance the log never had: not a stream)
+            build.notes.append(f"IMU instance {instance} ({name}): no usable sample, left out")
+        elif stream is not None:
             imus.append(stream)
             build.notes.append(f"IMU instance {instance} ({name}): {len(stream.t_us)} samples")
     if not imus:
