@@ -1338,6 +1338,8 @@ def _who(vehicle: Vehicle) -> str:
 ACCEL_FAR_SHARE = 0.5
 
 
-def accel_far_from_g_share(stats: StreamStats) -> float:
-    """The share of a stream's gravity updates that its accelerometer's norm kept out."""
-    return stats.accel_far_from_g / stats.updates if stats.updates else 0.0
+def accel_seldom_gravity(stats: StreamStats) -> float | None:
+    """The share of a stream's gravity updates that its accelerometer's norm kept out,
+    when beyond :data:`ACCEL_FAR_SHARE` (a run says so); else None."""
+    share = stats.accel_far_from_g / stats.updates if stats.updates else 0.0
+    return share if share > ACCEL_FAR_SHARE else None

@@ -43,11 +43,10 @@ from mavest.service import bulk
 from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import EstimatesTable, table_format
 from mavest.service.pipeline import (
-    ACCEL_FAR_SHARE,
     EstimateSink,
     Pipeline,
     Stream,
-    accel_far_from_g_share,
+    accel_seldom_gravity,
     heartbeats_after,
 )
 from mavest.service.signals import stop_on_signals
@@ -470,18 +469,24 @@ async def replay(
         opened.close()
     if not report.lingered:
         _fill_replay_report(report, source, opened, start)
-    report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
-    _warn_of_accelerometers_far_from_g(pipeline)
+    _run_ended(report, opened, pipeline)
     return report
 
 
-def _warn_of_accelerometers_far_from_g(pipeline: Pipeline) -> None:
-    """A warning for each stream whose accelerometer was mostly kept out of its gravity
-    updates (:data:`~mavest.service.pipeline.ACCEL_FAR_SHARE`): its tilt is then the
-    gyro's alone, its σ says how unsure (the summary says how often)."""
+def _record_outputs(report: RunReport, opened: _Opened) -> None:
+    """The outputs that stopped early, and those of which nothing was kept."""
+    report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
+
+
+def _run_ended(report: RunReport, opened: _Opened, pipeline: Pipeline) -> None:
+    """What every run (live or replay) reports when it ends: the outputs that stopped
+    early (and those of which nothing was kept), and a warning for each stream whose
+    accelerometer was mostly kept out of its gravity updates (its tilt is then the
+    gyro's alone, its σ says how unsure; the summary says how often)."""
+    _record_outputs(report, opened)
     for stream in pipeline.streams.values():
-        share = accel_far_from_g_share(stream.stats)
-        if share > ACCEL_FAR_SHARE:
+        share = accel_seldom_gravity(stream.stats)
+        if share is not None:
             log.warning(
                 "%s: the accelerometer was too far from g to be taken as gravity at %.0f %% "
                 "of the updates: tilt seldom observed (a vehicle always accelerating, or "
@@ -644,7 +649,7 @@ def _open_log(path: str | Path, config: ServiceConfig) -> _Source:
 
 def _fill_replay_report(report: RunReport, source: _Source, opened: _Opened, start: float) -> None:
     reader, damage = source.reader, source.damage
-    report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
+    _record_outputs(report, opened)  # (a served replay's summary comes before the close)
     report.elapsed = time.perf_counter() - start + source.loading
     report.records = reader.stats.records
     report.bad_records = reader.stats.bad_crc + damage.bad_records
@@ -760,8 +765,7 @@ async def run_live(
             for link in links:
                 link.close()
             opened.close()
-    report.output_errors, report.unwritten = opened.errors(), opened.unwritten()
-    _warn_of_accelerometers_far_from_g(pipeline)
+    _run_ended(report, opened, pipeline)
     report.elapsed = time.perf_counter() - start
     report.records = pipeline.messages_in
     report.bad_records = pipeline.bad_packets
@@ -1021,9 +1025,9 @@ def format_summary(report: RunReport) -> str:
             )
         )
         lines.append("    filter health: " + (", ".join(health) if health else "no resets"))
-        if accel_far_from_g_share(stats) > ACCEL_FAR_SHARE:
+        if (share := accel_seldom_gravity(stats)) is not None:
             lines.append(
-                f"    accelerometer too far from g at {100 * accel_far_from_g_share(stats):.0f} % "
+                f"    accelerometer too far from g at {100 * share:.0f} % "
                 f"of the {stats.updates} gravity updates: tilt seldom observed"
             )
         if stats.accel_wrong_unit:
