@@ -152,8 +152,11 @@ class BroadTrial:
 
     @property
     def scored(self) -> np.ndarray:
-        """(N,) bool: the samples a score counts, ``movement`` where the truth is known."""
-        return self.movement & np.all(np.isfinite(self.truth_q), axis=1)
+        """(N,) bool: the samples a score counts, ``movement`` where the truth is known
+        (:func:`mavest.evaluation.metrics.scored_rows`, the scoring's own rule)."""
+        from mavest.evaluation.metrics import scored_rows  # (scipy.optimize: when asked)
+
+        return scored_rows(self.truth_q, self.movement)
 
     @property
     def duration(self) -> float:
