@@ -147,6 +147,24 @@ def test_clean_flight_is_the_same_both_ways(
     assert _bulk_samples(report) == 4801
 
 
+@pytest.mark.parametrize(("first", "most"), [(1, 1), (5, 37), (3000, 3000)])
+def test_parts_of_any_size_give_the_same_replay(
+    first: int,
+    most: int,
+    turning_flights: dict[str, Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The filter's parts (small, growing, one sample) change nothing a replay gives."""
+    from mavest.service import bulk as service_bulk
+
+    config = ServiceConfig.from_toml(CONFIGS / "ardupilot.toml")
+    monkeypatch.setattr(service_bulk, "_FIRST_PART", first)
+    monkeypatch.setattr(service_bulk, "_PART", most)
+    report = _assert_same_both_ways(turning_flights["ardupilot"], config, tmp_path)
+    assert _bulk_samples(report) == 4801
+
+
 @pytest.mark.parametrize("with_rrd", [False, True])
 def test_most_samples_go_through_the_compiled_path(
     with_rrd: bool,
