@@ -52,7 +52,6 @@ from mavest.service.estimates_table import EstimatesTableError, table_format
 from mavest.service.log_repeats import UNLIMITED, RepeatLimiter
 from mavest.service.runners import Outputs, RunReport, replay, run_live
 from mavest.service.signals import sigterm_interrupts, stop_on_signals
-from mavest.sim.flight import SimulatorMissingError
 from mavest.viz.viewer import VIEWER_MODES, ViewerError
 
 log = logging.getLogger("mavest")
@@ -465,6 +464,9 @@ def _with_outputs(
 
 
 def _sim(args: argparse.Namespace) -> int:
+    # (the simulator is loaded only by the commands that fly it: replay starts sooner)
+    from mavest.sim.flight import SimulatorMissingError
+
     try:
         return _simulate(args)
     except (SimulatorMissingError, TlogError) as error:  # (TlogError: --tlog not writable)
@@ -495,6 +497,7 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from mavest.sim.flight import SimulatorMissingError
     from mavest.sim.vehicle import AUTOPILOTS, write_flight_tlog
 
     config = _load_config(args)  # (a mistake in it is said before the flight is flown)

@@ -97,6 +97,34 @@ def test_the_command_keeps_openblas_to_one_thread_unless_told(given: str | None,
     assert done.stdout.split() == ["mavest", __version__, seen]
 
 
+# How the collector fared while the command loaded: the collections it made, whether it
+# is on afterwards, how many objects loading left frozen out of its reach.
+_PRINT_COLLECTOR = """
+import gc, sys
+sys.argv = ["mavest", "--version"]
+collections = []
+gc.callbacks.append(lambda phase, info: phase == "start" and collections.append(info))
+from mavest.launch import main
+before = len(collections)
+try:
+    main()
+except SystemExit:  # argparse's, after --version
+    pass
+print(len(collections) - before, gc.isenabled(), gc.get_freeze_count())
+"""
+
+
+def test_the_command_loads_without_the_collector_and_runs_with_it() -> None:
+    done = subprocess.run(
+        [sys.executable, "-c", _PRINT_COLLECTOR], capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    collections, enabled, frozen = done.stdout.split()[-3:]
+    # (with it on, loading made over a hundred collections)
+    assert (collections, enabled) == ("0", "True")
+    assert int(frozen) > 100_000
+
+
 def test_python_dash_m_mavest_is_the_command(tmp_path: Path) -> None:
     done = subprocess.run([*MAVEST, "--version"], capture_output=True, text=True, check=False)
     assert (done.returncode, done.stdout.strip()) == (0, f"mavest {__version__}")
