@@ -449,6 +449,61 @@ def test_blocks_do_not_change_the_result(monkeypatch: pytest.MonkeyPatch) -> Non
         np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))
 
 
+def _from_blocks(*args: object, **kwargs: object) -> dict[str, np.ndarray]:
+    """smooth_blocks' blocks put together: every field of the series, in row order."""
+    parts: dict[int, mavest.EstimateSeries] = dict(smoother.smooth_blocks(*args, **kwargs))
+    assert list(parts) == sorted(parts, reverse=True)  # (from the end)
+    firsts = sorted(parts)
+    assert [lo + len(parts[lo]) for lo in firsts[:-1]] == firsts[1:]
+    return {
+        name: np.concatenate([getattr(parts[lo], name) for lo in firsts])
+        for name in mavest.EstimateSeries.__dataclass_fields__
+    }
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["6d", "9d", "right_error_aligned", "measured_accel", "known_acceleration", "restart", "nan"],
+)
+def test_smoothing_a_block_at_a_time_gives_smooth_bit_for_bit(
+    case: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """smooth_blocks runs the forward pass again a block at a time instead of holding it:
+    the same estimates, every field, every bit, blocks from the end to the start."""
+    monkeypatch.setattr(smoother, "BLOCK", 257)  # (many blocks, one of them short)
+    data, t, gyro, accel, mag = _damaged(case if case in ("restart", "nan") else "none")
+    config, linear = None, None
+    if case == "6d":
+        mag = None
+    elif case == "right_error_aligned":
+        config = EstimatorConfig(error="right", chart="exp", accel_alignment_sigma=0.004)
+    elif case == "measured_accel":
+        config = EstimatorConfig(smooth_accel_time=0.0)
+    elif case == "known_acceleration":
+        linear = np.full_like(accel, np.nan)
+        linear[::10] = data.linear_accel[::10]
+    whole = smooth(t, gyro, accel, mag, config, linear)
+    blocks = _from_blocks(t, gyro, accel, mag, config, linear)
+    for name, values in blocks.items():
+        np.testing.assert_array_equal(values, getattr(whole, name), err_msg=name)
+
+
+def test_smoothing_a_block_at_a_time_refuses_as_smooth_and_starts_where_it_does() -> None:
+    data = simulate(5.0, 100.0, seed=14)
+    with pytest.raises(InputError, match="g"):
+        next(smoother.smooth_blocks(data.t, data.gyro, data.accel / G))
+    # the averaged accelerometer never near g: the forward pass takes it as measured
+    n = 3000
+    t = np.arange(n) * 0.01
+    gyro = np.zeros((n, 3))
+    gyro[:, 2] = 0.3
+    accel = np.tile([0.0, 0.0, -1.6 * G], (n, 1))
+    accel[1500:1520] = [0.0, 0.0, -G]
+    blocks = _from_blocks(t, gyro, accel)
+    np.testing.assert_array_equal(blocks["q"], smooth(t, gyro, accel).q)
+    assert list(smoother.smooth_blocks(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))) == []
+
+
 @pytest.mark.parametrize("with_mag", [False, True], ids=["6d", "9d"])
 def test_memory_beyond_the_result_is_small(with_mag: bool) -> None:
     """An hour at 1 kHz must smooth in 1.5 GB: the result (401 B a sample) and little

@@ -648,20 +648,21 @@ def estimate(
     """
     estimator = Estimator(config)
     series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
-    refuse_wrong_unit(estimator, series)
+    refuse_wrong_unit(estimator, series.flags)
     return series
 
 
-def refuse_wrong_unit(estimator: Estimator, series: EstimateSeries) -> None:
-    """:class:`InputError` if the estimator's samples in ``series`` were flagged with an
-    accelerometer in another unit (``StepFlags.ACCEL_WRONG_UNIT``), or if not one of them
-    was estimated (each NOT_INITIALISED): a recording's estimate would be all
-    placeholders. The message is one line, saying why."""
+def refuse_wrong_unit(estimator: Estimator, flags: np.ndarray) -> None:
+    """:class:`InputError` if the estimator's samples (``flags``: their steps' flags, as a
+    series holds them) were flagged with an accelerometer in another unit
+    (``StepFlags.ACCEL_WRONG_UNIT``), or if not one of them was estimated (each
+    NOT_INITIALISED): a recording's estimate would be all placeholders. The message is
+    one line, saying why."""
     problem = estimator.accel_unit_problem
-    if problem is not None and np.any(series.flags & StepFlags.ACCEL_WRONG_UNIT):
+    if problem is not None and np.any(flags & StepFlags.ACCEL_WRONG_UNIT):
         raise InputError(problem)
-    if len(series) and np.all(series.flags & StepFlags.NOT_INITIALISED):
-        raise InputError(_why_not_initialised(series.flags, estimator.config))
+    if flags.shape[0] and np.all(flags & StepFlags.NOT_INITIALISED):
+        raise InputError(_why_not_initialised(flags, estimator.config))
 
 
 def _why_not_initialised(flags: np.ndarray, config: EstimatorConfig) -> str:

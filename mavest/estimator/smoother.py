@@ -27,7 +27,8 @@ heading is taken: the forward heading is free there, of no information.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -45,6 +46,8 @@ from mavest.estimator.frames import add_alignment
 from mavest.estimator.fusion import BACKWARD_HEADING, TILT, TILT_AND_HEADING, fuse_block
 from mavest.estimator.layout import StepFlags
 from mavest.estimator.zero_phase import zero_phase_blocks
+
+_Pass = TypeVar("_Pass")
 
 # Samples whose estimate is a placeholder or a held copy of an earlier one.
 _NO_ESTIMATE = StepFlags.NOT_INITIALISED | StepFlags.SKIPPED
@@ -91,17 +94,33 @@ def smooth(
     """
     config = config_or_default(config)
     t, gyro, accel, mag, linear_accel = batch_inputs(t, gyro, accel, mag, linear_accel)
-    forward = None
+    forward = _forward_pass(
+        config,
+        linear_accel,
+        lambda: _forward_on_averaged_accel(t, gyro, accel, mag, config),
+        lambda: estimate(t, gyro, accel, mag, config, linear_accel),
+    )
+    return smooth_forward(forward, t, gyro, accel, mag, config, linear_accel)
+
+
+def _forward_pass(
+    config: EstimatorConfig,
+    linear_accel: np.ndarray | None,
+    on_averaged: Callable[[], _Pass],
+    on_measured: Callable[[], _Pass],
+) -> _Pass:
+    """The smoother's forward pass: run on the averaged accelerometer (``on_averaged``),
+    or on the samples as measured (``on_measured``) with ``smooth_accel_time`` 0, with a
+    known acceleration (which already takes out what the average would), or where the
+    average never lets the filter start."""
     if config.smooth_accel_time > 0.0 and not _any_known(linear_accel):
         try:
-            forward = _forward_on_averaged_accel(t, gyro, accel, mag, config)
+            return on_averaged()
         except InputError:
             # Never near g on average (a long turn with a moment level), where the filter
             # starts on that moment's samples: the forward pass takes them as measured.
-            forward = None
-    if forward is None:  # (a known acceleration already takes out what the average would)
-        forward = estimate(t, gyro, accel, mag, config, linear_accel)
-    return smooth_forward(forward, t, gyro, accel, mag, config, linear_accel)
+            pass
+    return on_measured()
 
 
 def _any_known(linear_accel: np.ndarray | None) -> bool:
@@ -120,7 +139,13 @@ def forward_accel(
     t, gyro, accel, _, _ = batch_inputs(t, gyro, accel)
     if config.smooth_accel_time <= 0.0 or t.shape[0] == 0:
         return accel
-    return np.concatenate(list(_averaged_blocks(t, gyro, accel, config)))
+    # (each block copied as it comes: the blocks are not all held at once)
+    averaged = np.empty_like(accel)
+    lo = 0
+    for block in _averaged_blocks(t, gyro, accel, config):
+        averaged[lo : lo + block.shape[0]] = block
+        lo += block.shape[0]
+    return averaged
 
 
 def _averaged_blocks(
@@ -150,7 +175,7 @@ def _forward_on_averaged_accel(
         hi = lo + block.shape[0]
         part = None if mag is None else mag[lo:hi]
         estimator.update_batch(t[lo:hi], gyro[lo:hi], block, part, out=forward.rows(lo, hi))
-    refuse_wrong_unit(estimator, forward)
+    refuse_wrong_unit(estimator, forward.flags)
     return forward
 
 
@@ -193,23 +218,170 @@ def smooth_forward(
     n = t.shape[0]
     if len(forward) != n:
         raise ValueError(f"the forward pass has {len(forward)} samples, t has {n}")
-    has_forward = (forward.flags & _NO_ESTIMATE) == 0
+    if backward_start is not None:
+        q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
+        if P0.shape != (6, 6):  # (the rest Estimator.initialise checks)
+            raise ValueError(f"backward_start's cov must be (6, 6), got shape {P0.shape}")
+        backward_start = (q0, b0, P0)
+    blocks = _fused_blocks(
+        forward.flags,
+        forward.mag_used,
+        lambda k: forward.q[k],
+        forward.rows,
+        (t, gyro, accel, mag_array, linear),
+        config,
+        backward_start,
+    )
+    for _ in blocks:  # (each block fused in place: forward's rows)
+        pass
+    return forward
+
+
+def smooth_blocks(
+    t: ArrayLike,
+    gyro: ArrayLike,
+    accel: ArrayLike,
+    mag: ArrayLike | None = None,
+    config: EstimatorConfig | None = None,
+    linear_accel: ArrayLike | None = None,
+) -> Iterator[tuple[int, EstimateSeries]]:
+    """:func:`smooth`'s result a block of rows at a time, from the recording's end to its
+    start: (the block's first row, its estimates), the same numbers bit for bit, the
+    same validation and :class:`~mavest.estimator.estimator.InputError` (raised before
+    the first block).
+
+    For a recording too long to hold its smoothed covariances (288 bytes a sample: an
+    hour at 1 kHz, 1 GB), taken a block at a time: the forward pass is run once to note
+    its state every :data:`BLOCK` samples and again, a block at a time, as the backward
+    pass reaches each, so nothing of the recording's length is held but the forward
+    pass's flags and its averaged accelerometer (33 bytes a sample at the peak), for
+    about the time of one more filter pass. Each block's estimates are the caller's (not
+    kept).
+    """
+    config = config_or_default(config)
+    t, gyro, accel, mag_array, linear = batch_inputs(t, gyro, accel, mag, linear_accel)
+    forward = _forward_pass(
+        config,
+        linear,
+        lambda: _CheckpointedPass(
+            t, gyro, forward_accel(t, gyro, accel, config), mag_array, None, config
+        ),
+        lambda: _CheckpointedPass(t, gyro, accel, mag_array, linear, config),
+    )
+    yield from _fused_blocks(
+        forward.flags,
+        forward.mag_used,
+        forward.q_at,
+        forward.rows,
+        (t, gyro, accel, mag_array, linear),
+        config,
+        None,
+    )
+
+
+class _CheckpointedPass:
+    """A forward pass over a recording run once, keeping its flags, its magnetometer use
+    and its state at the start of each of the backward pass's blocks (the recording's
+    last :data:`BLOCK` samples, the block before them, …), then run again a block at a
+    time (:meth:`rows`, each block once, in any order): each block's estimates as the
+    first run gave them, as a filter's steps depend on its state and inputs alone."""
+
+    def __init__(
+        self,
+        t: np.ndarray,
+        gyro: np.ndarray,
+        accel: np.ndarray,
+        mag: np.ndarray | None,
+        linear_accel: np.ndarray | None,
+        config: EstimatorConfig,
+    ) -> None:
+        n = t.shape[0]
+        self._inputs = (t, gyro, accel, mag, linear_accel)
+        self._estimator = Estimator(config)
+        self._states: dict[int, np.ndarray] = {}
+        self._last: tuple[int, np.ndarray | None] = (-1, None)
+        self.flags = np.zeros(n, dtype=np.int32)
+        self.mag_used = np.zeros(n, dtype=np.bool_)
+        for lo, hi in reversed(list(_backward_blocks(n))):
+            self._states[lo] = self._estimator.snapshot()
+            out = self._run(lo, hi)
+            self.flags[lo:hi] = out.flags
+            self.mag_used[lo:hi] = out.mag_used
+            estimated = np.flatnonzero((out.flags & _NO_ESTIMATE) == 0)
+            if estimated.shape[0]:
+                self._last = (lo + int(estimated[-1]), out.q[estimated[-1]].copy())
+        refuse_wrong_unit(self._estimator, self.flags)
+
+    def _run(self, lo: int, hi: int) -> EstimateSeries:
+        t, gyro, accel, mag, linear_accel = self._inputs
+        return self._estimator.update_batch(
+            t[lo:hi],
+            gyro[lo:hi],
+            accel[lo:hi],
+            None if mag is None else mag[lo:hi],
+            None if linear_accel is None else linear_accel[lo:hi],
+        )
+
+    def q_at(self, k: int) -> np.ndarray:
+        """The attitude of the pass's last estimate (``k``, its row)."""
+        last, q = self._last
+        if k != last or q is None:
+            raise ValueError(f"row {k} is not the forward pass's last estimate ({last})")
+        return q
+
+    def rows(self, lo: int, hi: int) -> EstimateSeries:
+        """The estimates of block [lo, hi), run again from the state noted at ``lo``."""
+        self._estimator.restore(self._states.pop(lo))
+        return self._run(lo, hi)
+
+
+def _backward_blocks(n: int) -> Iterator[tuple[int, int]]:
+    """The backward pass's blocks of rows, [lo, hi), from the recording's end."""
+    for hi in range(n, 0, -BLOCK):
+        yield max(0, hi - BLOCK), hi
+
+
+def _fused_blocks(
+    flags: np.ndarray,
+    mag_used: np.ndarray,
+    q_at: Callable[[int], np.ndarray],
+    forward_rows: Callable[[int, int], EstimateSeries],
+    inputs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None],
+    config: EstimatorConfig,
+    backward_start: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+) -> Iterator[tuple[int, EstimateSeries]]:
+    """The backward pass over the recording, fused a block at a time into the forward
+    pass's estimates of those rows (``forward_rows(lo, hi)``: each block asked once, from
+    the end; its q, bias and cov overwritten with the smoothed ones), each yielded with
+    its first row. ``flags``, ``mag_used``: the forward pass's, whole; ``q_at(k)``: its
+    attitude at its last estimate, row ``k``; ``inputs``: the samples as measured
+    (t, gyro, accel, mag, linear_accel), which the backward pass takes."""
+    t, gyro, accel, mag_array, linear = inputs
+    n = t.shape[0]
+    has_forward = (flags & _NO_ESTIMATE) == 0
     if n == 0 or not np.any(has_forward):
-        return forward
+        for lo, hi in _backward_blocks(n):
+            yield lo, forward_rows(lo, hi)
+        return
     # Reversed time, increasing: t' = t_last − t, t_last a time the forward pass took
     # (a corrupt timestamp elsewhere is then far off the backward timeline as well).
-    last = np.flatnonzero(has_forward)[-1]
+    last = int(np.flatnonzero(has_forward)[-1])
     t_last = t[last]
-    heading_known = (forward.flags & StepFlags.HEADING_ALIGNED) != 0
-    forward_heading, _ = _referenced_since_start(
-        heading_known | forward.mag_used, (forward.flags & StepFlags.INITIALISED) != 0, False
-    )
+    # (a block at a time, as the backward pass's: its temporaries are 40 bytes a sample)
+    forward_heading = np.empty(n, dtype=np.bool_)
+    referenced = False
+    for lo in range(0, n, BLOCK):
+        block = slice(lo, min(lo + BLOCK, n))
+        forward_heading[block], referenced = _referenced_since_start(
+            ((flags[block] & StepFlags.HEADING_ALIGNED) != 0) | mag_used[block],
+            (flags[block] & StepFlags.INITIALISED) != 0,
+            referenced,
+        )
     # The passes are fused on the filter's own covariances: the accelerometer's alignment
     # is the same error in both, not two independent ones, and no fusing removes it. It
-    # is taken off the forward pass's and added to the smoothed ones at the end.
+    # is taken off each block of the forward pass's and added to the smoothed ones.
     alignment = config.accel_alignment_sigma**2
     right = config.error == "right"
-    add_alignment(forward.q, -alignment, right, forward.cov)
     backward = Estimator(
         config.replace(
             initial_bias=tuple(-np.asarray(config.initial_bias)), accel_alignment_sigma=0.0
@@ -225,20 +397,18 @@ def smooth_forward(
         # smoothed attitude worse than the filter's. Its own magnetometer sets its
         # heading, unless a known acceleration (removed in the world frame) needs the
         # heading from the start.
-        backward.initialise(0.0, forward.q[last], heading_known=_any_known(linear))
+        backward.initialise(0.0, q_at(last), heading_known=_any_known(linear))
     else:
-        q0, b0, P0 = (np.asarray(v, dtype=np.float64) for v in backward_start)
-        if P0.shape != (6, 6):  # (the rest Estimator.initialise checks)
-            raise ValueError(f"backward_start's cov must be (6, 6), got shape {P0.shape}")
+        q0, b0, P0 = backward_start
         flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
         backward.initialise(0.0, q0, -b0, flip @ P0 @ flip)
-    right = config.error == "right"
     backward_heading = False
     # the backward estimate at the sample after the block (its next block's first)
     after_flags = StepFlags.NOT_INITIALISED
     after_q, after_b, after_P = np.zeros(4), np.zeros(3), np.zeros((6, 6))
-    for hi in range(n, 0, -BLOCK):
-        lo = max(0, hi - BLOCK)
+    for lo, hi in _backward_blocks(n):
+        forward = forward_rows(lo, hi)
+        add_alignment(forward.q, -alignment, right, forward.cov)
         order = np.arange(hi - 1, lo - 1, -1)
         # the gyro sample that covers (t_k, t_k+1] is t_k+1's: the backward pass,
         # stepping from t_k+1 back to t_k, takes that one
@@ -269,9 +439,9 @@ def smooth_forward(
         with np.errstate(invalid="ignore"):  # (∞ − ∞ at a last sample of time ∞: unused)
             dt = t[following] - t[lo:hi]
         fuse_block(
-            forward.q[lo:hi],
-            forward.bias[lo:hi],
-            forward.cov[lo:hi],
+            forward.q,
+            forward.bias,
+            forward.cov,
             out.q,
             out.bias,
             out.cov,
@@ -290,8 +460,8 @@ def smooth_forward(
         )
         after_flags = out.flags[-1]
         after_q, after_b, after_P = out.q[-1].copy(), out.bias[-1].copy(), out.cov[-1].copy()
-    add_alignment(forward.q, alignment, right, forward.cov)
-    return forward
+        add_alignment(forward.q, alignment, right, forward.cov)
+        yield lo, forward
 
 
 def _referenced_since_start(
