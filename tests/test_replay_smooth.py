@@ -29,7 +29,7 @@ import mavest.service.estimates_table as estimates_table
 import mavest.service.runners as runners
 import mavest.service.smoothing as smoothing
 from mavest.cli import main
-from mavest.estimator import InputError
+from mavest.estimator import InputError, smoother
 from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
 from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import COLUMNS, SMOOTHED_COLUMNS
@@ -104,6 +104,16 @@ def _read(path: Path) -> dict[str, np.ndarray]:
     return columns
 
 
+def _in_one_block(run: Any) -> Any:
+    """A function of smooth's arguments that returns a whole series (the filter, say), as
+    ``smooth_blocks`` gives its result: here in one block."""
+
+    def blocks(*args: Any) -> Any:
+        yield 0, run(*args)
+
+    return blocks
+
+
 # ------------------------------------------------------------------ the inputs
 
 
@@ -115,7 +125,7 @@ def test_with_the_filter_in_the_smoothers_place_the_smoothed_columns_are_the_onl
     correction, the magnetometer where usable, the GPS acceleration), whichever path took
     it: the filter run again over it gives the online estimate, bit for bit, and the
     comparisons made again give the online figures."""
-    monkeypatch.setattr(smoothing, "smooth", mavest.estimate)
+    monkeypatch.setattr(smoothing, "smooth_blocks", _in_one_block(mavest.estimate))
     # (the GPS acceleration's move to its interval is the smoother's, not the filter's)
     monkeypatch.setattr(smoothing, "measured_interval_acceleration", lambda a: a)
     table = tmp_path / "estimates.csv"
@@ -152,7 +162,7 @@ def test_a_reboot_starts_a_segment_and_rejected_samples_are_not_inputs(
         assert np.all(np.diff(t) > 0.0)  # one timeline each
         return mavest.estimate(t, *args)
 
-    monkeypatch.setattr(smoothing, "smooth", filter_again)
+    monkeypatch.setattr(smoothing, "smooth_blocks", _in_one_block(filter_again))
     monkeypatch.setattr(smoothing, "measured_interval_acceleration", lambda a: a)
     table = tmp_path / "estimates.parquet"
     report = _replay(path, Outputs(estimates=table))
@@ -185,7 +195,7 @@ def test_a_timeline_the_smoother_refuses_is_left_out_not_the_stream(
             raise InputError("nothing estimated")
         return mavest.estimate(t, *args)
 
-    monkeypatch.setattr(smoothing, "smooth", refuse_the_second)
+    monkeypatch.setattr(smoothing, "smooth_blocks", _in_one_block(refuse_the_second))
     monkeypatch.setattr(smoothing, "measured_interval_acceleration", lambda a: a)
     table, rrd = tmp_path / "estimates.csv", tmp_path / "run.rrd"
     config = ServiceConfig().replace(input={"settle_time": 1.0})  # (scored from 1 s on)
@@ -468,24 +478,23 @@ def test_inputs_are_kept_compactly_a_chunk_at_a_time() -> None:
     assert (gyro[: n // 2] == (0.1, 0.2, 0.3)).all() and (accel[n // 2 :] == 1.0).all()
 
 
-def test_smoothing_a_stream_holds_little_beyond_the_smoother(
+def test_smoothing_a_stream_holds_its_inputs_and_what_it_keeps(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Beyond what ``smooth`` itself allocates (its result: 401 bytes a sample), a stream's
-    smoothing holds its inputs (104 bytes a sample, and 24 for the GPS acceleration moved
-    to its interval): what it keeps of the result (q, the angles and their σ, the bias
-    and its σ) is made after, a chunk at a time, not held beside it."""
+    """A stream is smoothed a block at a time: it holds its inputs (104 bytes a sample,
+    and 24 for the GPS acceleration moved to its interval), what it keeps of the result
+    (q, the angles and their σ, the bias and its σ: 128) and the smoother's own (33),
+    never the smoothed covariances (288 of the result's 401); and what it keeps is
+    ``mavest.smooth``'s on those inputs, bit for bit."""
     log = tmp_path / "flight.tlog"
     write_flight_tlog(log, 40.0, 1000.0, AUTOPILOTS["ardupilot"], seed=2)
     peaks: dict[str, float] = {}
-    smooth, smooth_stream = smoothing.smooth, runners.smooth_stream
+    given: list[tuple[Any, ...]] = []
+    smooth_blocks, smooth_stream = smoothing.smooth_blocks, runners.smooth_stream
 
-    def measured_smooth(t: np.ndarray, *args: Any) -> Any:
-        entry = tracemalloc.get_traced_memory()[0]
-        tracemalloc.reset_peak()
-        out = smooth(t, *args)
-        peaks["smooth"] = (tracemalloc.get_traced_memory()[1] - entry) / t.shape[0]
-        return out
+    def noted_blocks(*args: Any) -> Any:
+        given.append(args)
+        return smooth_blocks(*args)
 
     def measured_stream(stream: Any) -> Any:
         n = len(stream.inputs)
@@ -498,10 +507,20 @@ def test_smoothing_a_stream_holds_little_beyond_the_smoother(
             tracemalloc.stop()
         return out
 
-    monkeypatch.setattr(smoothing, "smooth", measured_smooth)
+    monkeypatch.setattr(smoothing, "smooth_blocks", noted_blocks)
     monkeypatch.setattr(runners, "smooth_stream", measured_stream)
-    _replay(log)
-    assert peaks["stream"] - peaks["smooth"] <= 104 + 24 + 50, peaks
+    # (blocks and the comparisons' pieces small beside the flight: what each holds is
+    # fixed, whatever the length)
+    monkeypatch.setattr(smoother, "BLOCK", 512)
+    monkeypatch.setattr(smoothing, "_SCORE_PIECE", 512)
+    report = _replay(log)
+    assert peaks["stream"] <= 104 + 24 + 128 + 33 + 40, peaks
+    (stream,) = report.streams
+    (args,) = given
+    whole = mavest.smooth(*args)
+    smoothed = report.smoothed[stream.key]
+    np.testing.assert_array_equal(smoothed.q, whole.q)
+    np.testing.assert_array_equal(smoothed.bias, whole.bias)
 
 
 def test_samples_the_filter_skipped_are_not_inputs() -> None:

@@ -16,19 +16,25 @@ with the stream's own filter configuration and the declination it ended with.
 
 The inputs are float64 arrays, filled a chunk at a time (13 numbers, 104 bytes a
 sample: a 1-hour 1 kHz stream holds 0.37 GB); without ``--smooth`` nothing is kept.
+They are smoothed a block at a time (``smoother.smooth_blocks``, the same estimates
+as ``mavest.smooth``), keeping of each block what the outputs show (128 bytes a
+sample), not its covariances: an hour's log at 1 kHz replays and smooths in 1.2 GB.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import mmap
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mavest import so3
-from mavest.estimator import EstimateSeries, InputError, StepFlags, smooth
+from mavest.estimator import EstimateSeries, InputError, StepFlags
+from mavest.estimator.smoother import smooth_blocks
 from mavest.evaluation.online import ESTIMATE, REFERENCE, ComparisonResult, EulerComparison
 
 if TYPE_CHECKING:
@@ -42,6 +48,15 @@ CHUNK = 65536
 _SCORE_PIECE = 1 << 20
 
 Vector = tuple[float, float, float]
+
+
+def _mapped(shape: tuple[int, ...]) -> np.ndarray:
+    """An empty float64 array in pages of its own (an anonymous mapping), which go back to
+    the system when the array goes. A chunk from the allocator instead (a megabyte or so)
+    stays in the process when freed, kept for reuse: the chunks :meth:`_Columns.take`
+    frees as it copies them would stay beside the copy (360 MB for an hour at 1 kHz)."""
+    size = math.prod(shape) * np.dtype(np.float64).itemsize
+    return np.frombuffer(mmap.mmap(-1, size), dtype=np.float64).reshape(shape)
 
 
 class _Columns:
@@ -59,7 +74,7 @@ class _Columns:
 
     def _room(self) -> list[np.ndarray]:
         if self._filled == CHUNK:
-            self._chunks.append([np.empty(shape) for shape in self._shapes])
+            self._chunks.append([_mapped(shape) for shape in self._shapes])
             self._filled = 0
         return self._chunks[-1]
 
@@ -308,20 +323,24 @@ def measured_interval_acceleration(linear_accel: np.ndarray) -> np.ndarray:
     return out
 
 
-def _kept_of(series: EstimateSeries, error: str) -> tuple[np.ndarray, ...]:
-    """What a smoothed stream keeps of the smoother's result: q and bias (its own arrays,
-    not copies), the angles and their σ, the bias's σ (made :data:`CHUNK` rows at a
-    time: their temporaries are a chunk's, whatever the length)."""
-    n = series.q.shape[0]
-    euler, sigma, bias_sigma = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
-    for lo in range(0, n, CHUNK):
-        rows = slice(lo, min(lo + CHUNK, n))
-        cov = series.cov[rows]
-        euler[rows] = so3.euler_zyx_from_quats(series.q[rows])
-        sigma[rows] = so3.euler_sigmas(series.q[rows], cov[:, :3, :3], error)
-        bias_variance = np.diagonal(cov[:, 3:, 3:], axis1=1, axis2=2)
+def _kept_of(
+    blocks: Iterator[tuple[int, EstimateSeries]], n: int, error: str
+) -> tuple[np.ndarray, ...]:
+    """What a smoothed stream keeps of the smoother's result (``blocks``: n samples'
+    worth from :func:`~mavest.estimator.smoother.smooth_blocks`), filled a block at a
+    time: q, the angles and their σ, the bias and its σ (128 bytes a sample, where the
+    result with its covariances is 401)."""
+    q = np.empty((n, 4))
+    euler, sigma, bias, bias_sigma = (np.empty((n, 3)) for _ in range(4))
+    for lo, series in blocks:
+        rows = slice(lo, lo + len(series))
+        q[rows] = series.q
+        bias[rows] = series.bias
+        euler[rows] = so3.euler_zyx_from_quats(series.q)
+        sigma[rows] = so3.euler_sigmas(series.q, series.cov[:, :3, :3], error)
+        bias_variance = np.diagonal(series.cov[:, 3:, 3:], axis1=1, axis2=2)
         bias_sigma[rows] = np.sqrt(np.maximum(bias_variance, 0.0))
-    return series.q, euler, sigma, series.bias, bias_sigma
+    return q, euler, sigma, bias, bias_sigma
 
 
 def smooth_stream(stream: Stream) -> SmoothedStream | None:
@@ -344,7 +363,10 @@ def smooth_stream(stream: Stream) -> SmoothedStream | None:
     for first, end in zip(segments, [*segments[1:], n], strict=True):
         part = slice(first, end)
         try:
-            series = smooth(t[part], gyro[part], accel[part], mag[part], config, linear_accel[part])
+            blocks = smooth_blocks(
+                t[part], gyro[part], accel[part], mag[part], config, linear_accel[part]
+            )
+            kept = _kept_of(blocks, end - first, config.error)
         except InputError as error:
             where = (
                 f" (samples {first + 1}–{end} of {n}, the timeline after a reboot)"
@@ -355,8 +377,7 @@ def smooth_stream(stream: Stream) -> SmoothedStream | None:
             refused += end - first
             parts.append(tuple(np.full((end - first, k), math.nan) for k in (4, 3, 3, 3, 3)))
             continue
-        parts.append(_kept_of(series, config.error))
-        del series  # (all but what is kept: its covariances are 288 bytes a sample)
+        parts.append(kept)
     del gyro, accel, mag, linear_accel  # (t is all that is needed from here)
     if refused == n:
         return None
