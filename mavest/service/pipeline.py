@@ -1242,8 +1242,10 @@ def count_estimated(stats: StreamStats, flags: Any, mag_usable: Any, mag_used: A
     the vehicle's acceleration removed (ACCEL_AIDED)."""
     stats.estimated += 1 if isinstance(mag_usable, bool) else len(mag_usable)
     stats.gps_aided += _count((flags & StepFlags.ACCEL_AIDED) != 0)
-    stats.updates += _count((flags & (StepFlags.BETWEEN_UPDATES | StepFlags.NOT_INITIALISED)) == 0)
-    stats.accel_far_from_g += _count((flags & StepFlags.ACCEL_REJECTED_NORM) != 0)
+    update = (flags & (StepFlags.BETWEEN_UPDATES | StepFlags.NOT_INITIALISED)) == 0
+    stats.updates += _count(update)
+    # (of those updates: a sample the filter could not start on is none)
+    stats.accel_far_from_g += _count(update & ((flags & StepFlags.ACCEL_REJECTED_NORM) != 0))
     taken = mag_usable & ((flags & (MAG_NOT_TAKEN | StepFlags.NOT_INITIALISED)) == 0)
     stats.mag_usable += _count(mag_usable)
     stats.mag_taken += _count(taken)
