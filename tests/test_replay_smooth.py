@@ -14,12 +14,14 @@ import math
 import threading
 import time
 import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from test_hostile_input import CASES, _tlog_bytes, clean_flights
 from test_onboard_replay import _synthetic_log
 from test_rerun import _scalars
@@ -31,6 +33,8 @@ import mavest.service.smoothing as smoothing
 from mavest.cli import main
 from mavest.estimator import InputError, smoother
 from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
+from mavest.mavlink.messages import MAVLink
+from mavest.mavlink.tlog import TlogWriter
 from mavest.service.config import ServiceConfig
 from mavest.service.estimates_table import COLUMNS, SMOOTHED_COLUMNS
 from mavest.service.runners import Outputs, RunReport, replay
@@ -141,6 +145,90 @@ def test_with_the_filter_in_the_smoothers_place_the_smoothed_columns_are_the_onl
     smoothed_stream = report.smoothed[stream.key]
     assert smoothed_stream.vs_truth == stream.vs_truth.result()
     assert smoothed_stream.vs_autopilot == stream.vs_autopilot.result()
+
+
+def _roll_tlog(
+    path: Path, roll: Callable[[float], float], accel_g: Callable[[float], float]
+) -> None:
+    """An ArduPilot vehicle's RAW_IMU at 200 Hz for 15 s, rolled by ``roll(t)`` (rad) about
+    its x axis, its accelerometer ``accel_g(t)`` g along the vertical, its magnetometer
+    consistent: the gyro field saturates (32767 mrad/s) where it rolls faster."""
+    mav = MAVLink(None, srcSystem=1, srcComponent=1)
+    rng = np.random.default_rng(0)
+    with TlogWriter(path) as tlog:
+        heartbeat = mav.heartbeat_encode(mavlink2.MAV_TYPE_QUADROTOR, 3, 0, 0, 0)
+        tlog.write(0, heartbeat.pack(mav))
+        for k in range(1, 3001):
+            t = k / 200.0
+            phi, rate = roll(t), (roll(t + 1e-4) - roll(t - 1e-4)) / 2e-4
+            s, c = math.sin(phi), math.cos(phi)
+            a = 1000.0 * accel_g(t)
+            noise = rng.normal(0.0, 2.0, 6)
+            raw = mav.raw_imu_encode(
+                round(t * 1e6),
+                round(noise[0]),
+                round(-a * s + noise[1]),
+                round(-a * c + noise[2]),
+                min(32767, round(rate * 1000.0 + noise[3])),
+                round(noise[4]),
+                round(noise[5]),
+                200,
+                round(400 * s),
+                round(400 * c),
+                0,
+                3500,
+            )
+            tlog.write(round(t * 1e6), raw.pack(mav))
+
+
+def test_a_clipped_gyro_starts_a_smoothing_timeline(tmp_path: Path) -> None:
+    """Level, then rolled 90° in 0.04 s at 39 rad/s (the gyro field saturates: those
+    samples are rejected and the filter re-aligns tilt when calm): the smoother carries no
+    attitude across the rotation it cannot know, so each side is smoothed on its own.
+    Across it, both passes took the other side's attitude: 42° off everywhere."""
+    log = tmp_path / "clip.tlog"
+    _roll_tlog(log, lambda t: min(max(t - 5.0, 0.0) / 0.04, 1.0) * math.pi / 2, lambda t: 1.0)
+    table = tmp_path / "estimates.csv"
+    report = _replay(log, Outputs(estimates=table))
+    (stream,) = report.streams
+    assert stream.stats.rejected > 0
+    columns = _read(table)
+    t = columns["time_s"]
+    truth = np.where(t > 5.04, 90.0, 0.0)
+    away = (t < 5.0) | (t > 5.6)  # (the filter waits for calm before it re-aligns)
+    error = np.abs(columns["smoothed_roll_deg"] - truth)[away]
+    assert np.all(np.isfinite(error)) and np.max(error) < 1.0, np.max(error)
+
+
+def test_where_the_smoother_has_no_estimate_none_is_shown(tmp_path: Path) -> None:
+    """The first second's accelerometer reads 2 g: neither pass has an attitude there, and
+    the smoothed columns are NaN, not the filter's placeholders (identity, its initial σ)."""
+    log = tmp_path / "late.tlog"
+    _roll_tlog(log, lambda t: 0.3, lambda t: 2.0 if t < 1.0 else 1.0)
+    table = tmp_path / "estimates.csv"
+    _replay(log, Outputs(estimates=table))
+    columns = _read(table)
+    first = columns["time_s"] < 0.9
+    not_started = (columns["flags"].astype(np.int64) & mavest.StepFlags.NOT_INITIALISED) != 0
+    assert first.any() and np.all(not_started[first])
+    for name in ("smoothed_qw", "smoothed_roll_deg", "smoothed_sigma_roll_deg"):
+        assert np.all(np.isnan(columns[name][first])), name
+    later = columns["time_s"] > 3.0
+    assert np.all(np.abs(columns["smoothed_roll_deg"][later] - math.degrees(0.3)) < 1.0)
+
+
+def test_a_stream_the_smoother_refuses_whole_keeps_its_smoothed_columns(tmp_path: Path) -> None:
+    """An accelerometer at 2 g throughout: nothing starts either filter. The table keeps
+    its smoothed columns, NaN (a reader of it finds the columns it asked for), and the
+    summary says none was smoothed."""
+    log = tmp_path / "two_g.tlog"
+    _roll_tlog(log, lambda t: 0.0, lambda t: 2.0)
+    table = tmp_path / "estimates.parquet"
+    report = _replay(log, Outputs(estimates=table))
+    columns = pq.read_table(table).to_pydict()
+    for name in SMOOTHED_COLUMNS:
+        assert np.all(np.isnan(np.asarray(columns[name], dtype=float))), name
+    assert "smoothed: none of its 3000 samples: the smoother refused them" in report.summary()
 
 
 @pytest.fixture(scope="module")

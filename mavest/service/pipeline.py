@@ -610,6 +610,8 @@ class Pipeline:
             reject_sample(stream, _rejection_reason(sample))
             if sample.gyro_saturated:  # the rotation it missed is unknown
                 stream.estimator.gyro_clipped()
+                if stream.inputs is not None:  # (nor can smoothing carry an attitude across)
+                    stream.inputs.restart()
             return
         clock = stream.clock
         reading = clock.read(sample.ticks, sample.tick)

@@ -132,7 +132,7 @@ class RunReport:
     compile_seconds: float = 0.0
     # the replay was over and a served viewer went on serving it until the stop
     lingered: bool = False
-    # replay --smooth: each stream smoothed (one the smoother refused is absent), or why
+    # replay --smooth: each stream smoothed (NaN where the smoother refused), or why
     # nothing was
     smoothed: dict[StreamKey, SmoothedStream] = field(default_factory=dict)
     smoothing_skipped: str = ""
@@ -1084,7 +1084,12 @@ def format_summary(report: RunReport) -> str:
                     f"    vs {name}: not scored: none of its {comparison.references} attitudes "
                     f"came {settle:g} s or more into the stream and beside its estimates"
                 )
-        if smoothed is not None:
+        if smoothed is not None and smoothed.refused == len(smoothed):
+            lines.append(
+                f"    smoothed: none of its {len(smoothed)} samples: the smoother refused them"
+                " (its warning says why)"
+            )
+        elif smoothed is not None:
             count = (
                 f"{len(smoothed) - smoothed.refused} of {len(smoothed)}"
                 if smoothed.refused

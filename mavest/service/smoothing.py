@@ -18,7 +18,9 @@ The inputs are float64 arrays, filled a chunk at a time (13 numbers, 104 bytes a
 sample: a 1-hour 1 kHz stream holds 0.37 GB); without ``--smooth`` nothing is kept.
 They are smoothed a block at a time (``smoother.smooth_blocks``, the same estimates
 as ``mavest.smooth``), keeping of each block what the outputs show (128 bytes a
-sample), not its covariances: an hour's log at 1 kHz replays and smooths in 1.2 GB.
+sample), not its covariances: an hour's autopilot log at 1 kHz replays and smooths in
+1.2 GB. A simulator's log with its truth at every sample holds about 150 bytes a sample
+more: the truth's references, kept to score the smoothed estimate against them.
 """
 
 from __future__ import annotations
@@ -42,6 +44,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("mavest")
 
+# A sample's estimate is a placeholder: the filter had not started, or skipped it.
+_NO_ESTIMATE = StepFlags.NOT_INITIALISED | StepFlags.SKIPPED
 # Samples per chunk of a stream's inputs (6.8 MB): growing costs a chunk, never a copy.
 CHUNK = 65536
 # Estimates scored per call when a comparison is run again (bounds its arrays).
@@ -166,7 +170,8 @@ class RecordedInputs:
         self._columns.add_rows(*columns)
 
     def restart(self) -> None:
-        """The filter was re-initialised for a new timeline (a reboot)."""
+        """The filter was re-initialised for a new timeline (a reboot), or lost its
+        attitude (a clipped gyro): the smoother carries none across."""
         if len(self) > self.segments[-1]:
             self.segments.append(len(self))
 
@@ -332,6 +337,7 @@ def _kept_of(
     result with its covariances is 401)."""
     q = np.empty((n, 4))
     euler, sigma, bias, bias_sigma = (np.empty((n, 3)) for _ in range(4))
+    kept = (q, euler, sigma, bias, bias_sigma)
     for lo, series in blocks:
         rows = slice(lo, lo + len(series))
         q[rows] = series.q
@@ -340,13 +346,19 @@ def _kept_of(
         sigma[rows] = so3.euler_sigmas(series.q, series.cov[:, :3, :3], error)
         bias_variance = np.diagonal(series.cov[:, 3:, 3:], axis1=1, axis2=2)
         bias_sigma[rows] = np.sqrt(np.maximum(bias_variance, 0.0))
-    return q, euler, sigma, bias, bias_sigma
+        # where the smoother has no estimate (its filter not yet started) its rows hold
+        # placeholders (identity, the initial σ), not an attitude: none is shown
+        none = lo + np.flatnonzero((series.flags & _NO_ESTIMATE) != 0)
+        for values in kept:
+            values[none] = math.nan
+    return kept
 
 
 def smooth_stream(stream: Stream) -> SmoothedStream | None:
     """A stream's recorded inputs smoothed, a segment per timeline; its comparisons made
     again with the result. A segment the smoother refuses (nothing in it could start the
-    filter) is NaN, said in one line; None if it refuses every one."""
+    filter) is NaN, said in one line, and so is every one if it refuses them all (the
+    outputs keep their smoothed columns). None: no inputs kept."""
     inputs = stream.inputs
     if inputs is None or not len(inputs):
         return None
@@ -369,7 +381,8 @@ def smooth_stream(stream: Stream) -> SmoothedStream | None:
             kept = _kept_of(blocks, end - first, config.error)
         except InputError as error:
             where = (
-                f" (samples {first + 1}–{end} of {n}, the timeline after a reboot)"
+                f" (samples {first + 1}–{end} of {n}, one of its {len(segments)} timelines:"
+                " a reboot or a clipped gyro starts one)"
                 if len(segments) > 1
                 else ""
             )
@@ -379,8 +392,6 @@ def smooth_stream(stream: Stream) -> SmoothedStream | None:
             continue
         parts.append(kept)
     del gyro, accel, mag, linear_accel  # (t is all that is needed from here)
-    if refused == n:
-        return None
     q, euler, sigma, bias, bias_sigma = (
         parts[0][i] if len(parts) == 1 else np.concatenate([p[i] for p in parts]) for i in range(5)
     )
