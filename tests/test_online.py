@@ -158,6 +158,34 @@ def test_both_paths_give_the_same_estimates_bit_for_bit(update: str) -> None:
     assert compiled.samples == python.samples == n
 
 
+@pytest.mark.parametrize("online_path", ["compiled", "python"])
+def test_samples_without_an_estimate_are_stepped_as_update_batch_steps_them(
+    online_path: str,
+) -> None:
+    """Samples the filter cannot start on (2 g), then estimated ones, one whose time goes
+    back (skipped) and a gap it re-aligns after: every field of each online estimate is
+    update_batch's, its time the sample's (not the filter's last, -inf before the first)."""
+    if online_path == "compiled" and estimator_module._COMPILED is None:
+        pytest.skip("the extension is not built (test_the_extension_is_built_from_this_source)")
+    data = simulate(6.0, 100.0, seed=8)
+    t, gyro, accel = data.t.copy(), data.gyro.copy(), data.accel.copy()
+    accel[:20] *= 2.0
+    t[300] = t[299] - 0.5
+    t[400:] += 5.0
+    filter_ = Estimator() if online_path == "compiled" else _python_estimator(EstimatorConfig())
+    made = [filter_.update(t[i], gyro[i], accel[i]) for i in range(len(t))]
+    batch = Estimator().update_batch(t, gyro, accel)
+    flags = batch.flags
+    assert np.all(flags[:20] & StepFlags.NOT_INITIALISED) and flags[300] & StepFlags.SKIPPED
+    for i, e in enumerate(made):
+        for name in FIELDS:
+            if name not in ("euler", "status"):
+                np.testing.assert_array_equal(
+                    getattr(e, name), getattr(batch, name)[i], err_msg=f"{name} at {i}"
+                )
+    np.testing.assert_array_equal([e.t for e in made], t)
+
+
 def test_a_batch_fed_estimator_steps_lone_samples_as_batches_then_online() -> None:
     """Estimator(batch_fed=True), as mavest replay makes them: its first updates run the
     batch loop on the one sample (the online step is not even made), later ones the

@@ -178,7 +178,7 @@ def step_into_row(
         add_reported_alignment(
             s, c, out[ROW_COV : ROW_COV + N_ERROR * N_ERROR].reshape((N_ERROR, N_ERROR))
         )
-    out[ROW_T] = s.t
+    out[ROW_T] = t  # (the sample's time, whatever the step did: update_batch's too)
     out[ROW_NIS] = s.nis
     out[ROW_ACCEL_USED] = 1.0 if s.accel_used != 0 else 0.0
     out[ROW_FLAGS] = s.flags
