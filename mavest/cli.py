@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import csv
 import dataclasses
 import io
 import logging
@@ -626,13 +627,18 @@ def _estimate_table(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.input}: {error}") from None
     euler = np.degrees(out.euler)
     sigma = np.degrees(np.sqrt(np.stack([out.cov[:, i, i] for i in range(3)], axis=1)))
-    result = np.column_stack([out.t, out.q, euler, np.degrees(out.bias), sigma, out.flags])
+    columns = [out.t, *out.q.T, *euler.T, *np.degrees(out.bias).T, *sigma.T, out.flags]
     header = (
         "t,qw,qx,qy,qz,roll_deg,pitch_deg,yaw_deg,bias_x_dps,bias_y_dps,bias_z_dps,"
         "sigma_x_deg,sigma_y_deg,sigma_z_deg,flags"
     )
     text = io.StringIO()
-    np.savetxt(text, result, delimiter=",", header=header, comments="", fmt="%.9g")
+    text.write(header + "\n")
+    # each number as Python writes it, shortest and exact, as the estimates table's CSV:
+    # a time of 1e6 s at 1 kHz keeps its milliseconds (nine digits did not)
+    csv.writer(text, lineterminator="\n").writerows(
+        zip(*(column.tolist() for column in columns), strict=True)
+    )
     if args.output is None:
         _say(text.getvalue(), end="")
     else:

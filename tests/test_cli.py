@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import mavest
 from mavest import __version__
 from mavest.cli import CSV_COLUMNS, EXIT_INTERRUPTED, main
 from mavest.mavlink.tlog import TlogError
@@ -40,6 +41,21 @@ def test_estimate_reads_csv_and_writes_one_row_per_sample(tmp_path: Path) -> Non
     rows = np.loadtxt(target, delimiter=",", skiprows=1)
     assert rows.shape == (len(data.t), 15)
     np.testing.assert_allclose(np.linalg.norm(rows[:, 1:5], axis=1), 1.0, atol=1e-8)
+
+
+def test_estimate_writes_its_numbers_exactly(tmp_path: Path) -> None:
+    """A clock of 1e6 s at 1 kHz (a long-running board's, or epoch time at 200 Hz) keeps
+    every sample's time, and each number reads back as the filter gave it."""
+    data = simulate(2.0, 1000.0, seed=1)
+    t = 1e6 + np.arange(len(data.t)) * 1e-3
+    source = tmp_path / "imu.csv"
+    np.savetxt(source, np.column_stack([t, data.gyro, data.accel]), delimiter=",", fmt="%.17g")
+    target = tmp_path / "out.csv"
+    assert main(["estimate", str(source), "-o", str(target)]) == 0
+    rows = np.loadtxt(target, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(rows[:, 0], np.loadtxt(source, delimiter=",")[:, 0])
+    expected = mavest.estimate(np.loadtxt(source, delimiter=",")[:, 0], data.gyro, data.accel)
+    np.testing.assert_array_equal(rows[:, 1:5], expected.q)
 
 
 @pytest.mark.parametrize(
