@@ -200,10 +200,13 @@ def partial_path(path: str | Path, pid: int | None = None) -> Path:
 
 def publish(temporary: Path, path: str | Path) -> None:
     """The whole file ``temporary`` (:func:`partial_path`) at ``path``: renamed onto the
-    file ``path`` resolves to, or, for an output written in place, copied into it and
-    removed (:class:`OSError` if that fails; ``temporary`` is removed then too)."""
+    file ``path`` resolves to (a file replaced keeps its permissions), or, for an output
+    written in place, copied into it and removed (:class:`OSError` if that fails;
+    ``temporary`` is removed then too)."""
     if not writes_in_place(path):
-        os.replace(temporary, output_target(path))
+        target = output_target(path)
+        _keep_mode(temporary, target)
+        os.replace(temporary, target)
         return
     try:
         with temporary.open("rb") as source, open(path, "wb") as stream:
@@ -211,6 +214,16 @@ def publish(temporary: Path, path: str | Path) -> None:
     finally:
         with contextlib.suppress(OSError):
             temporary.unlink(missing_ok=True)
+
+
+def _keep_mode(temporary: Path, target: Path) -> None:
+    """A file about to replace ``target`` takes its permissions, if it exists (a new one
+    keeps what the umask gave it)."""
+    try:
+        mode = target.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        return
+    os.chmod(temporary, mode)
 
 
 def write_atomically(path: str | Path, data: bytes) -> None:
@@ -227,16 +240,11 @@ def write_atomically(path: str | Path, data: bytes) -> None:
     target = output_target(path)
     temporary = partial_path(target)
     try:
-        mode = target.stat().st_mode & 0o7777
-    except FileNotFoundError:
-        mode = None
-    try:
         with temporary.open("wb") as stream:
             stream.write(data)
             stream.flush()
             os.fsync(stream.fileno())
-        if mode is not None:
-            os.chmod(temporary, mode)
+        _keep_mode(temporary, target)
         os.replace(temporary, target)
     finally:
         with contextlib.suppress(OSError):  # (a read-only folder refuses even this)

@@ -102,6 +102,23 @@ def test_an_output_through_a_symbolic_link_writes_the_file_it_points_to(
     assert sorted(p.name for p in targets.iterdir()) == sorted(links)
 
 
+@pytest.mark.parametrize("table", ["table.csv", "table.parquet"])
+def test_an_output_replaced_keeps_its_permissions(
+    table: str, flight: Path, imu_csv: Path, tmp_path: Path
+) -> None:
+    """Every output a run replaces whole keeps the permissions its user gave it (the
+    estimate's CSV, the estimates table, written first beside it and renamed)."""
+    outputs = {name: tmp_path / name for name in ("est.csv", table)}
+    for path in outputs.values():
+        path.write_bytes(b"old")
+        path.chmod(0o600)
+    assert main(["estimate", str(imu_csv), "-o", str(outputs["est.csv"])]) == 0
+    assert main(["replay", str(flight), "-q", "--estimates", str(outputs[table])]) == 0
+    for name, path in outputs.items():
+        assert path.read_bytes() != b"old", name
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600, name
+
+
 def _read_fifo(path: Path) -> tuple[threading.Thread, list[bytes]]:
     """A reader of the FIFO at ``path``, in a thread, until its writer closes it."""
     got: list[bytes] = []

@@ -39,8 +39,9 @@ stays flat however long the run), to a hidden file beside it (:func:`paths.parti
 renamed at the end (with ``--smooth``, once the smoothed columns are added to its rows,
 a block at a time too). A run stopped by Ctrl-C keeps the rows it has, all complete; a
 run that fails on an error leaves no file. A symbolic link is written at the file it
-points to; a character device or a FIFO (``--estimates /dev/stdout``) gets the whole
-table at the end, copied into it (:func:`paths.publish`), and is never replaced.
+points to; a character device or a FIFO (a FIFO made as ``table.csv``, say: the table's
+name says its format) gets the whole table at the end, copied into it
+(:func:`paths.publish`), and is never replaced.
 Parquet needs pyarrow (``pip install 'mavest[parquet]'``), CSV nothing.
 """
 
