@@ -664,6 +664,18 @@ _TOLD_FLAGS = (
 )
 
 
+def _time_unit(step: float, max_dt: float) -> str | None:
+    """The unit a recording's time seems to be in, from its median step: None where that
+    is a sampling interval in seconds (at most ``max_dt``), else the first of
+    milliseconds, microseconds and nanoseconds in which it would be one."""
+    if step <= max_dt:
+        return None
+    for unit, per_second in (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9)):
+        if step / per_second <= max_dt:
+            return unit
+    return None
+
+
 def _flag_summary(
     flags: np.ndarray, t: np.ndarray, gyro: np.ndarray, config: EstimatorConfig
 ) -> list[str]:
@@ -678,6 +690,11 @@ def _flag_summary(
         return StepFlags.describe(bit)[0].lower().replace("_", " ")
 
     lines = []
+    steps = np.diff(t[np.isfinite(t)])
+    step = float(np.median(steps[steps > 0.0])) if np.any(steps > 0.0) else 0.0
+    # a sampling interval of seconds that is a plausible one in a smaller unit
+    time_unit = _time_unit(step, config.max_dt)
+    time_hint = f"the median step of t is {step:g}: {time_unit}? t must be in seconds"
     skipped = count(StepFlags.SKIPPED)
     if skipped:
         reasons = [getattr(StepFlags, reason) for reason in StepFlags.describe(StepFlags.SKIPPED)]
@@ -688,18 +705,17 @@ def _flag_summary(
             if too_fast.any()
             else ""
         )
+        if time_unit is not None and count(StepFlags.TIME_OFF_TIMELINE):
+            unit += f"; {time_hint}"
         lines.append(
             f"{skipped} sample{'s' if skipped != 1 else ''} skipped: "
             + ", ".join(f"{name(bit)} ({count(bit)})" for bit in reasons if count(bit))
             + unit
         )
-    steps = np.diff(t[np.isfinite(t)])
-    step = float(np.median(steps[steps > 0.0])) if np.any(steps > 0.0) else 0.0
     hints = {
-        # a sampling interval of seconds that is a plausible one in milliseconds
         StepFlags.GAP_REALIGNED: (
-            f" (the median step of t is {step:g}: milliseconds? t must be in seconds)"
-            if step > config.max_dt and step / 1000.0 <= config.max_dt
+            f" ({time_hint})"
+            if time_unit is not None
             else f" (more than max_dt = {config.max_dt:g} s after the sample before)"
         ),
         StepFlags.GYRO_CLIPPED: (

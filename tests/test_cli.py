@@ -231,6 +231,22 @@ def test_a_header_with_a_byte_order_mark_crlf_and_spaces_is_read(tmp_path: Path)
             ],
         ),
         (
+            {},
+            1e6,
+            [
+                "200 samples skipped: time off timeline (200); the median step of t is 20000: "
+                "microseconds? t must be in seconds"
+            ],
+        ),
+        (
+            {},
+            1e9,
+            [
+                "200 samples skipped: time off timeline (200); the median step of t is 2e+07: "
+                "nanoseconds? t must be in seconds"
+            ],
+        ),
+        (
             {"gx": (50, 40.0)},  # (beyond MAX_ANGULAR_RATE a sample is skipped, not clipped)
             1.0,
             ["gyro clipped: 1 sample (beyond gyro_clip = 33.86: °/s? the gyro must be in rad/s)"],
@@ -241,7 +257,7 @@ def test_a_header_with_a_byte_order_mark_crlf_and_spaces_is_read(tmp_path: Path)
             ["1 sample skipped: gyro invalid (1); beyond 50 rad/s: °/s? the gyro must be in rad/s"],
         ),
     ],
-    ids=["clean", "nan", "back", "jump", "ms", "clipped", "beyond"],
+    ids=["clean", "nan", "back", "jump", "ms", "us", "ns", "clipped", "beyond"],
 )
 def test_estimate_says_what_the_flags_tell_of_its_samples(
     tmp_path: Path,
