@@ -49,8 +49,9 @@ from mavest.estimator.zero_phase import zero_phase_blocks
 
 _Pass = TypeVar("_Pass")
 
-# Samples whose estimate is a placeholder or a held copy of an earlier one.
-_NO_ESTIMATE = StepFlags.NOT_INITIALISED | StepFlags.SKIPPED
+# Samples whose estimate is a placeholder or a held copy of an earlier one: the smoother
+# fuses none there, and its result holds no attitude of theirs.
+NO_ESTIMATE = StepFlags.NOT_INITIALISED | StepFlags.SKIPPED
 # Samples at which a pass starts afresh from that sample's accelerometer: its
 # estimate there holds no earlier sample's attitude information, and its prior
 # (the estimate before the sample) is not that of the estimate it holds.
@@ -307,7 +308,7 @@ class _CheckpointedPass:
             out = self._run(lo, hi)
             self.flags[lo:hi] = out.flags
             self.mag_used[lo:hi] = out.mag_used
-            estimated = np.flatnonzero((out.flags & _NO_ESTIMATE) == 0)
+            estimated = np.flatnonzero((out.flags & NO_ESTIMATE) == 0)
             if estimated.shape[0]:
                 self._last = (lo + int(estimated[-1]), out.q[estimated[-1]].copy())
         refuse_wrong_unit(self._estimator, self.flags)
@@ -358,7 +359,7 @@ def _fused_blocks(
     (t, gyro, accel, mag, linear_accel), which the backward pass takes."""
     t, gyro, accel, mag_array, linear = inputs
     n = t.shape[0]
-    has_forward = (flags & _NO_ESTIMATE) == 0
+    has_forward = (flags & NO_ESTIMATE) == 0
     if n == 0 or not np.any(has_forward):
         for lo, hi in _backward_blocks(n):
             yield lo, forward_rows(lo, hi)
@@ -432,8 +433,8 @@ def _fused_blocks(
         measured = ((flags_b & StepFlags.BETWEEN_UPDATES) == 0) | out.mag_used[::-1]
         fused = (
             has_forward[lo:hi]
-            & ((flags_b & (_NO_ESTIMATE | _RESTARTS)) == 0)
-            & (~measured | ((flags_next & _NO_ESTIMATE) == 0))
+            & ((flags_b & (NO_ESTIMATE | _RESTARTS)) == 0)
+            & (~measured | ((flags_next & NO_ESTIMATE) == 0))
         )
         following = following[::-1]
         with np.errstate(invalid="ignore"):  # (∞ − ∞ at a last sample of time ∞: unused)

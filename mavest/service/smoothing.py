@@ -36,7 +36,7 @@ import numpy as np
 
 from mavest import so3
 from mavest.estimator import EstimateSeries, InputError, StepFlags
-from mavest.estimator.smoother import smooth_blocks
+from mavest.estimator.smoother import NO_ESTIMATE, smooth_blocks
 from mavest.evaluation.online import ESTIMATE, REFERENCE, ComparisonResult, EulerComparison
 
 if TYPE_CHECKING:
@@ -44,8 +44,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("mavest")
 
-# A sample's estimate is a placeholder: the filter had not started, or skipped it.
-_NO_ESTIMATE = StepFlags.NOT_INITIALISED | StepFlags.SKIPPED
 # Samples per chunk of a stream's inputs (6.8 MB): growing costs a chunk, never a copy.
 CHUNK = 65536
 # Estimates scored per call when a comparison is run again (bounds its arrays).
@@ -348,7 +346,7 @@ def _kept_of(
         bias_sigma[rows] = np.sqrt(np.maximum(bias_variance, 0.0))
         # where the smoother has no estimate (its filter not yet started) its rows hold
         # placeholders (identity, the initial σ), not an attitude: none is shown
-        none = lo + np.flatnonzero((series.flags & _NO_ESTIMATE) != 0)
+        none = lo + np.flatnonzero((series.flags & NO_ESTIMATE) != 0)
         for values in kept:
             values[none] = math.nan
     return kept
