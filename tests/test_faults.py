@@ -33,6 +33,7 @@ from mavest.mavlink.tlog import TlogWriter
 from mavest.service.config import ServiceConfig
 from mavest.service.process import MAVEST, ServiceProcess, free_port
 from mavest.service.runners import Outputs, replay, run_live
+from mavest.service.signals import STOP_SIGNALS, stop_on_signals
 from mavest.sim.vehicle import AUTOPILOTS, StreamingVehicle, stream_flight, write_flight_tlog
 from mavest.viz.viewer import rerun_binary
 
@@ -516,6 +517,56 @@ def test_one_disk_filling_with_both_files_on_replay(
 
 
 # ------------------------------------------------------------------ signals at any moment
+
+
+def test_a_stopping_run_hands_ctrl_c_from_its_handler_straight_to_ignored(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A second Ctrl-C as a run closes must not end it before its summary: SIGINT goes
+    # from the run's handler to "ignored" without the interpreter's default between
+    # (which would raise KeyboardInterrupt there); SIGTERM and SIGHUP get their own back.
+    installed: list[tuple[int, Any]] = []
+    real = signal.signal
+
+    def recording(signum: int, handler: Any) -> Any:
+        installed.append((signum, handler))
+        return real(signum, handler)
+
+    before = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+
+    async def scenario() -> bool:
+        with stop_on_signals() as stop:
+            monkeypatch.setattr(signal, "signal", recording)
+            signal.raise_signal(signal.SIGINT)
+            await asyncio.wait_for(stop.wait(), 5.0)
+        return stop.is_set()
+
+    try:
+        assert asyncio.run(scenario())
+        sigint = [handler for signum, handler in installed if signum == signal.SIGINT]
+        assert sigint == [signal.SIG_IGN]
+        for signum in STOP_SIGNALS:
+            if signum != signal.SIGINT:
+                assert signal.getsignal(signum) is before[signum]
+    finally:
+        monkeypatch.undo()
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+
+
+def test_a_run_that_ends_on_its_own_gives_the_signals_back() -> None:
+    before = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+
+    async def scenario() -> dict[int, Any]:
+        around = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+        with stop_on_signals() as stop:
+            assert all(signal.getsignal(s) is not around[s] for s in STOP_SIGNALS)
+        assert not stop.is_set()
+        assert {s: signal.getsignal(s) for s in STOP_SIGNALS} == around
+        return around
+
+    asyncio.run(scenario())
+    assert {s: signal.getsignal(s) for s in STOP_SIGNALS} == before
 
 
 def _start(*arguments: str) -> subprocess.Popen[str]:

@@ -19,23 +19,38 @@ STOP_SIGNALS = tuple(
 @contextlib.contextmanager
 def stop_on_signals(stop: asyncio.Event | None = None) -> Iterator[asyncio.Event]:
     """The event to stop on: ``stop`` when the caller has one, else an event that
-    SIGINT and SIGTERM set while the block runs (inside a running event loop)."""
+    SIGINT, SIGTERM and SIGHUP set while the block runs (inside a running event loop,
+    in the main thread).
+
+    The handlers are the signal module's, not the loop's (``add_signal_handler``):
+    the loop hands a signal back by installing the interpreter's default first, so a
+    second Ctrl-C in that instant, as the run closes, would end it with its summary
+    unsaid. Here the handler goes straight from ours to the next one."""
     if stop is not None:
         yield stop
         return
     event = asyncio.Event()
     loop = asyncio.get_running_loop()
-    for signum in STOP_SIGNALS:
-        loop.add_signal_handler(signum, event.set)
+
+    def handler(signum: int, frame: object) -> None:
+        # (run by the interpreter in the main thread, between two steps of whatever it
+        # was doing, the loop's own bookkeeping included: the event is set by the loop)
+        loop.call_soon_threadsafe(event.set)
+
+    previous = {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS}
     try:
         yield event
     finally:
-        for signum in STOP_SIGNALS:
-            loop.remove_signal_handler(signum)
-        if event.is_set():
-            # Asked to stop, and stopping: a second Ctrl-C from here to the exit (the
-            # summary, Rerun's own shutdown) would only print a traceback.
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        # A signal still pending runs ours as its handler is replaced (the signal
+        # module runs pending handlers first): none is lost in between.
+        stopping = event.is_set()
+        for signum, earlier in previous.items():
+            if stopping and signum == signal.SIGINT:
+                # Asked to stop, and stopping: a second Ctrl-C from here to the exit (the
+                # summary, Rerun's own shutdown) would only print a traceback.
+                earlier = signal.SIG_IGN
+            # (None: a handler set outside Python, which cannot be put back)
+            signal.signal(signum, signal.SIG_DFL if earlier is None else earlier)
 
 
 @contextlib.contextmanager
