@@ -438,6 +438,36 @@ def test_a_nearly_full_disk_closes_the_rrd_complete_and_replay_goes_on(
     assert f"wrote {rrd} (Rerun recording, stopped early" in report.summary()
 
 
+def test_the_rrd_is_judged_on_what_rerun_has_written_once_its_disk_is_near_full(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Rerun's batcher writes on its own clock (held back here): a size read before it
+    # has would miss the batch still to come, and the footer after it might not fit.
+    import numpy as np
+    import rerun as rr
+
+    monkeypatch.setenv("RERUN_FLUSH_TICK_SECS", "1000")
+    rrd = tmp_path / "ours.rrd"
+    capacity = viewer.RRD_DISK_RESERVE_BYTES + 400_000  # a disk of this size, all ours
+    real_disk_usage = shutil.disk_usage
+
+    def disk_usage(path: Any) -> Any:
+        return real_disk_usage(path)._replace(free=capacity - rrd.stat().st_size)
+
+    monkeypatch.setattr(viewer.shutil, "disk_usage", disk_usage)
+    view = viewer.Viewer(viewer.ViewerRequest(rrd=rrd))
+    rng = np.random.default_rng(1)
+    for row in range(600):  # about 200 kB: still in the batcher
+        view.recording.set_time("t", sequence=row)
+        view.recording.log("noise", rr.Scalars(rng.random(40)))
+    assert rrd.stat().st_size < 10_000
+    view.check_space()
+    # written, it leaves less than the reserve and room for another batch as large
+    assert view.rrd_error is not None and "left on its disk" in view.rrd_error
+    _rrd_verifies(rrd)
+    view.close()
+
+
 def test_dev_full_as_the_output_tlog_is_one_line_and_the_answers_go_on() -> None:
     port = free_port(socket.SOCK_DGRAM)
     service = ServiceProcess(f"udpin:127.0.0.1:{port}", "--out-tlog", "/dev/full")
@@ -511,6 +541,7 @@ def test_one_disk_filling_with_both_files_on_replay(
     errors = service_log.errors()
     # the recording closes first, complete, while the reserve is left; the tlog fills the rest
     assert len(errors) == 2 and str(rrd) in errors[0] and str(tlog) in errors[1], errors
+    assert "stops here, complete" in errors[0], errors
     assert "No space left on device" in errors[1]
     assert len(_tlog_messages(tlog)) > 1000
     _rrd_verifies(rrd)

@@ -253,13 +253,16 @@ class Viewer:
         if rrd is None or not self._writing_file or self._broken:
             return
         try:
-            free = shutil.disk_usage(rrd.parent).free
-            size = rrd.stat().st_size
+            free, reserve = self._room(rrd)
+            if free < 2 * reserve:
+                # near: decide on what the file holds, with what Rerun's batcher had yet
+                # to write (a batch can be a few hundred kB) written
+                self.flush()
+                if self._broken or not self._writing_file:
+                    return
+                free, reserve = self._room(rrd)
         except OSError:
             return
-        self._largest_growth = max(self._largest_growth, size - self._rrd_size)
-        self._rrd_size = size
-        reserve = RRD_DISK_RESERVE_BYTES + RRD_FOOTER_SHARE * size + 2 * self._largest_growth
         if free >= reserve:
             return
         self._writing_file = False
@@ -278,6 +281,17 @@ class Viewer:
             rrd,
             free // 1024,
         )
+
+    def _room(self, rrd: Path) -> tuple[int, float]:
+        """The free bytes on the .rrd's disk, and those it must keep (see
+        :data:`RRD_DISK_RESERVE_BYTES`). The growth counted is the file's own, not the
+        disk's: another program writing there must not close the recording early."""
+        free = shutil.disk_usage(rrd.parent).free
+        size = rrd.stat().st_size
+        self._largest_growth = max(self._largest_growth, size - self._rrd_size)
+        self._rrd_size = size
+        reserve = RRD_DISK_RESERVE_BYTES + RRD_FOOTER_SHARE * size + 2 * self._largest_growth
+        return free, reserve
 
     def _file_failed(self, error: RuntimeError) -> None:
         """The file writer gave up (a disk filled faster than :meth:`check_space` saw)."""
