@@ -3,6 +3,7 @@ filter can compute with it, and every file that is not TOML refused in one line.
 
 from __future__ import annotations
 
+import codecs
 import dataclasses
 from pathlib import Path
 
@@ -73,6 +74,17 @@ def test_a_section_that_is_not_a_table_is_refused_by_name(tmp_path: Path, table:
     path.write_text(f"{table} = 5\n")
     with pytest.raises(ConfigError, match=rf"\[{table}\] must be a table of settings, got int 5"):
         ServiceConfig.from_toml(path)
+
+
+def test_a_byte_order_mark_is_read_past_and_utf16_is_named(tmp_path: Path) -> None:
+    # what Windows editors save: UTF-8 with a BOM (read as it is), or "Unicode" (UTF-16)
+    text = "[estimator]\ngyro_noise_density = 0.004\n"
+    path = tmp_path / "c.toml"
+    path.write_bytes(codecs.BOM_UTF8 + text.encode())
+    assert read_toml(path) == {"estimator": {"gyro_noise_density": 0.004}}
+    path.write_text(text, encoding="utf-16")
+    with pytest.raises(ConfigError, match=f"^{path} is UTF-16 text: TOML is UTF-8"):
+        read_toml(path)
 
 
 def test_a_file_that_is_not_text_is_not_a_toml_file(tmp_path: Path) -> None:

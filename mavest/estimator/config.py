@@ -10,6 +10,7 @@ tuned at 200 Hz got worse at 1 kHz: docs/design.md#conventions).
 
 from __future__ import annotations
 
+import codecs
 import dataclasses
 import functools
 import math
@@ -522,8 +523,13 @@ def read_toml(path: str | Path) -> dict[str, Any]:
     """A TOML file as a dict; :class:`ConfigError` says why it cannot be read."""
     path = Path(path)
     try:
-        with path.open("rb") as stream:
-            return tomllib.load(stream)
+        data = path.read_bytes()
+        # a byte-order mark, as Windows editors write at the start of UTF-8 text: not
+        # TOML's, but not the user's mistake either
+        data = data.removeprefix(codecs.BOM_UTF8)
+        if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+            raise ConfigError(f"{path} is UTF-16 text: TOML is UTF-8 (save it as UTF-8)")
+        return tomllib.loads(data.decode("utf-8"))
     except OSError as error:
         raise ConfigError(f"cannot read {path}: {error.strerror}") from None
     except tomllib.TOMLDecodeError as error:
