@@ -615,11 +615,27 @@ def _estimate_csv(args: argparse.Namespace) -> int:
         return _estimate_table(args)
 
 
+# The columns `estimate` writes, in order.
+ESTIMATE_COLUMNS = (
+    *("t", "qw", "qx", "qy", "qz", "roll_deg", "pitch_deg", "yaw_deg"),
+    *("bias_x_dps", "bias_y_dps", "bias_z_dps", "sigma_x_deg", "sigma_y_deg", "sigma_z_deg"),
+    "flags",
+)
+
+
 def _estimate_table(args: argparse.Namespace) -> int:
     config = _load_config(args).estimator
     _refuse_overlaps(
         {"the CSV being read": args.input, "the --config file": args.config}, {"-o": args.output}
     )
+    # -o's suffix names the format: .parquet is Parquet (checked before any work), any
+    # other name CSV
+    parquet = args.output is not None and args.output.suffix.lower() == ".parquet"
+    if parquet:
+        try:
+            table_format(args.output)
+        except EstimatesTableError as error:
+            raise UsageError(str(error)) from None
     table = _read_imu_csv(args.input)
     try:
         out = estimate(table[:, 0], table[:, 1:4], table[:, 4:7], config=config)
@@ -627,28 +643,40 @@ def _estimate_table(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.input}: {error}") from None
     euler = np.degrees(out.euler)
     sigma = np.degrees(np.sqrt(np.stack([out.cov[:, i, i] for i in range(3)], axis=1)))
-    columns = [out.t, *out.q.T, *euler.T, *np.degrees(out.bias).T, *sigma.T, out.flags]
-    header = (
-        "t,qw,qx,qy,qz,roll_deg,pitch_deg,yaw_deg,bias_x_dps,bias_y_dps,bias_z_dps,"
-        "sigma_x_deg,sigma_y_deg,sigma_z_deg,flags"
-    )
+    # (flags as the estimates table's: 64-bit integers)
+    flags = out.flags.astype(np.int64)
+    columns = [out.t, *out.q.T, *euler.T, *np.degrees(out.bias).T, *sigma.T, flags]
     text = io.StringIO()
-    text.write(header + "\n")
-    # each number as Python writes it, shortest and exact, as the estimates table's CSV:
-    # a time of 1e6 s at 1 kHz keeps its milliseconds (nine digits did not)
-    csv.writer(text, lineterminator="\n").writerows(
-        zip(*(column.tolist() for column in columns), strict=True)
-    )
+    if not parquet:
+        text.write(",".join(ESTIMATE_COLUMNS) + "\n")
+        # each number as Python writes it, shortest and exact, as the estimates table's
+        # CSV: a time of 1e6 s at 1 kHz keeps its milliseconds (nine digits did not)
+        csv.writer(text, lineterminator="\n").writerows(
+            zip(*(column.tolist() for column in columns), strict=True)
+        )
     if args.output is None:
         _say(text.getvalue(), end="")
     else:
+        data = _parquet_bytes(columns) if parquet else text.getvalue().encode()
         try:
-            write_atomically(args.output, text.getvalue().encode())
+            write_atomically(args.output, data)
         except OSError as error:
             raise UsageError(f"cannot write {args.output}: {error.strerror}") from None
     for line in _flag_summary(out.flags, table[:, 0], table[:, 1:4], config):
         log.warning("%s: %s", args.input, line)
     return 0
+
+
+def _parquet_bytes(columns: list[np.ndarray]) -> bytes:
+    """`estimate`'s table as a Parquet file's bytes (the same bytes for the same
+    estimates: the file says which pyarrow wrote it, and nothing of when)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pa.table(dict(zip(ESTIMATE_COLUMNS, columns, strict=True)))
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink)
+    return bytes(sink.getvalue().to_pybytes())
 
 
 # The flags `estimate` counts after its run, besides the samples it skipped: each is an
@@ -1067,7 +1095,13 @@ def build_parser() -> argparse.ArgumentParser:
         "gyro bias, 1σ and flags per sample.",
     )
     csv.add_argument("input", type=Path, help="CSV file ('#' starts a comment line)")
-    csv.add_argument("-o", "--output", type=Path, help="output CSV (default: standard output)")
+    csv.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        help="the estimates: FILE.parquet as Parquet (with pyarrow), any other name as CSV "
+        "(default: CSV on standard output)",
+    )
     _add_common(csv)
     csv.set_defaults(handler=_estimate_csv)
     return parser

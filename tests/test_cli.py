@@ -58,6 +58,42 @@ def test_estimate_writes_its_numbers_exactly(tmp_path: Path) -> None:
     np.testing.assert_array_equal(rows[:, 1:5], expected.q)
 
 
+def test_estimate_writes_parquet_when_asked_the_same_table_as_its_csv(tmp_path: Path) -> None:
+    pq = pytest.importorskip("pyarrow.parquet", reason="Parquet needs pyarrow")
+    data = simulate(3.0, 200.0, seed=2)
+    source = tmp_path / "imu.csv"
+    np.savetxt(source, np.column_stack([data.t, data.gyro, data.accel]), delimiter=",")
+    as_csv, as_parquet = tmp_path / "out.csv", tmp_path / "out.parquet"
+    assert main(["estimate", str(source), "-o", str(as_csv)]) == 0
+    assert main(["estimate", str(source), "-o", str(as_parquet)]) == 0
+    first = as_parquet.read_bytes()
+    assert first.startswith(b"PAR1")  # (a CSV named .parquet before)
+    table = pq.read_table(as_parquet)
+    header = as_csv.read_text().splitlines()[0].split(",")
+    assert table.column_names == header
+    rows = np.loadtxt(as_csv, delimiter=",", skiprows=1)
+    for at, name in enumerate(header):
+        np.testing.assert_array_equal(table.column(name).to_numpy(), rows[:, at])
+    assert table.column("flags").type == "int64"
+    assert main(["estimate", str(source), "-o", str(as_parquet)]) == 0
+    assert as_parquet.read_bytes() == first  # the same bytes every run
+
+
+def test_estimate_to_parquet_without_pyarrow_is_one_line_before_any_work(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "pyarrow" else real(name, *a)
+    )
+    target = tmp_path / "out.parquet"
+    assert main(["estimate", str(tmp_path / "never-read.csv"), "-o", str(target)]) == 2
+    assert "Parquet needs pyarrow" in capsys.readouterr().err
+    assert not target.exists()
+
+
 @pytest.mark.parametrize(
     ("arguments", "message"),
     [
