@@ -23,9 +23,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import csv
 import dataclasses
 import io
+import itertools
 import logging
 import math
 import os
@@ -49,7 +49,7 @@ from mavest.mavlink.tlog import TlogError
 from mavest.onboard import OnboardLogError
 from mavest.paths import InputFiles, OutputPathError, check_outputs, write_atomically
 from mavest.service.config import ServiceConfig
-from mavest.service.estimates_table import EstimatesTableError, table_format
+from mavest.service.estimates_table import EstimatesTableError, csv_rows, table_format
 from mavest.service.log_repeats import UNLIMITED, RepeatLimiter
 from mavest.service.runners import Outputs, RunReport, replay, run_live
 from mavest.service.signals import sigterm_interrupts, stop_on_signals
@@ -646,20 +646,15 @@ def _estimate_table(args: argparse.Namespace) -> int:
     # (flags as the estimates table's: 64-bit integers)
     flags = out.flags.astype(np.int64)
     columns = [out.t, *out.q.T, *euler.T, *np.degrees(out.bias).T, *sigma.T, flags]
-    text = io.StringIO()
-    if not parquet:
-        text.write(",".join(ESTIMATE_COLUMNS) + "\n")
-        # each number as Python writes it, shortest and exact, as the estimates table's
-        # CSV: a time of 1e6 s at 1 kHz keeps its milliseconds (nine digits did not)
-        csv.writer(text, lineterminator="\n").writerows(
-            zip(*(column.tolist() for column in columns), strict=True)
-        )
+    # the CSV made as it is written, a piece at a time (as the estimates table's)
+    header = (",".join(ESTIMATE_COLUMNS) + "\n").encode()
+    text = itertools.chain([header], (data for data, _ in csv_rows(columns)))
     if args.output is None:
-        _say(text.getvalue(), end="")
+        for piece in text:
+            _say(piece.decode(), end="")
     else:
-        data = _parquet_bytes(columns) if parquet else text.getvalue().encode()
         try:
-            write_atomically(args.output, data)
+            write_atomically(args.output, _parquet_bytes(columns) if parquet else text)
         except OSError as error:
             raise UsageError(f"cannot write {args.output}: {error.strerror}") from None
     for line in _flag_summary(out.flags, table[:, 0], table[:, 1:4], config):

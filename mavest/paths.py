@@ -26,7 +26,7 @@ import os
 import shutil
 import stat
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 
@@ -226,22 +226,23 @@ def _keep_mode(temporary: Path, target: Path) -> None:
     os.chmod(temporary, mode)
 
 
-def write_atomically(path: str | Path, data: bytes) -> None:
+def write_atomically(path: str | Path, data: bytes | Iterable[bytes]) -> None:
     """Write a whole file or nothing: a run stopped half-way leaves the old file (or
-    none), never a part (:func:`partial_path` until it is whole). A file replaced keeps
-    its permissions; a new one gets what the umask gives any new file. Through a
-    symbolic link, the file it points to is written (the link stays); a character
-    device or a FIFO is written into, as a stream (:func:`writes_in_place`: no rename
-    can make that atomic)."""
+    none), never a part (:func:`partial_path` until it is whole). ``data``: the bytes,
+    or pieces of them made as they are written. A file replaced keeps its permissions;
+    a new one gets what the umask gives any new file. Through a symbolic link, the file
+    it points to is written (the link stays); a character device or a FIFO is written
+    into, as a stream (:func:`writes_in_place`: no rename can make that atomic)."""
+    pieces = [data] if isinstance(data, bytes) else data
     if writes_in_place(path):
         with open(path, "wb") as stream:
-            stream.write(data)
+            stream.writelines(pieces)
         return
     target = output_target(path)
     temporary = partial_path(target)
     try:
         with temporary.open("wb") as stream:
-            stream.write(data)
+            stream.writelines(pieces)
             stream.flush()
             os.fsync(stream.fileno())
         _keep_mode(temporary, target)

@@ -58,6 +58,29 @@ def test_estimate_writes_its_numbers_exactly(tmp_path: Path) -> None:
     np.testing.assert_array_equal(rows[:, 1:5], expected.q)
 
 
+def test_estimate_writes_its_csv_a_piece_at_a_time(tmp_path: Path) -> None:
+    # The text of the whole table at once, and all its numbers as Python floats, came to
+    # over three times the file's size on top of the estimates themselves; in pieces,
+    # what is left is reading the input and the columns in degrees.
+    import tracemalloc
+
+    data = simulate(50.0, 400.0, seed=1)
+    source = tmp_path / "imu.csv"
+    np.savetxt(source, np.column_stack([data.t, data.gyro, data.accel]), delimiter=",")
+    target = tmp_path / "out.csv"
+    assert main(["estimate", str(source), "-o", str(target)]) == 0  # (compiled, loaded)
+    tracemalloc.start()
+    try:
+        mavest.estimate(data.t, data.gyro, data.accel)
+        estimating = tracemalloc.get_traced_memory()[1]
+        tracemalloc.reset_peak()
+        assert main(["estimate", str(source), "-o", str(target)]) == 0
+        whole = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert whole - estimating < 2 * target.stat().st_size, (whole, estimating)
+
+
 def test_estimate_writes_parquet_when_asked_the_same_table_as_its_csv(tmp_path: Path) -> None:
     pq = pytest.importorskip("pyarrow.parquet", reason="Parquet needs pyarrow")
     data = simulate(3.0, 200.0, seed=2)
