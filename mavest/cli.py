@@ -1114,7 +1114,9 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as error:
         print(f"mavest: {error}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # (a command whose summary says so has returned 130 itself)
+        with contextlib.suppress(OSError):
+            print("mavest: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # the reader of our output went away (`mavest … | head`)
         _silence_stdout()
