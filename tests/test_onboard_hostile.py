@@ -119,6 +119,39 @@ def test_an_imu_redefined_without_its_columns_is_one_line_naming_the_file(
     assert message.startswith("redefined.bin: no IMU samples") and "no column GyrX" in message
 
 
+def test_an_imu_redefined_longer_part_way_reads_the_records_of_its_last_definition(
+    tmp_path: Path,
+) -> None:
+    # Records are read by the FMT in force where they are: the earlier ones, shorter,
+    # were read with the last (longer) layout, past the file's end (an IndexError) or
+    # as each other's bytes; they are left out now, counted as damage and said.
+    log = imu_log(samples=100)
+    log.define(200, "IMU", IMU_FORMAT + "f", IMU_COLUMNS + ",T")
+    for k in range(500):
+        log.record("IMU", 20_000_000 + STEP_US * k, 0.001, -0.002, 0.0005, 0.1, -0.05,
+                   -9.80665, 0, 25.0)  # fmt: skip
+    loaded = load(log.save(tmp_path / "redefined.bin"))
+    assert len(loaded.imus[0].t_us) == 500
+    assert loaded.imus[0].t_us[0] == 20_000_000
+    np.testing.assert_allclose(loaded.imus[0].accel[:, 2], -9.80665, rtol=1e-6)
+    assert loaded.damage.bad_records == 100
+    assert "IMU is defined more than once: 100 of its records" in notes_of(loaded)
+    # cut right after the new definition: no record of it, none read with it
+    cut = imu_log(samples=100)
+    cut.define(200, "IMU", IMU_FORMAT + "f", IMU_COLUMNS + ",T")
+    with pytest.raises(OnboardLogError, match=r"^cut\.bin: no IMU samples"):
+        load(cut.save(tmp_path / "cut.bin"))
+
+
+def test_a_format_naming_one_column_twice_leaves_its_type_out(tmp_path: Path) -> None:
+    # (one flipped bit in a column's name does it: NumPy refused the layout, a traceback)
+    log = imu_log()
+    with_others(log, {"MAG": ("Qhhh", "TimeUS,MagX,MagX,MagZ")})
+    loaded = load(log.save(tmp_path / "twice.bin"))
+    assert len(loaded.imus[0].t_us) == 1000
+    assert loaded.mag in (None, {})
+
+
 def test_an_imu_type_without_a_time_column_is_left_out_and_the_others_read(
     tmp_path: Path,
 ) -> None:

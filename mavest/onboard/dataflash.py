@@ -26,6 +26,7 @@ degrees, attitude degrees), and a note says so.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -221,13 +222,22 @@ class DataflashFormat:
         columns = tuple(c for c in _text(record["Columns"]).split(",") if c) or ()
         length = int(record["Length"])
         dtype: np.dtype | None = None
-        if len(columns) == len(fmt) and all(c in _FORMAT_TO_NUMPY for c in fmt):
+        if (
+            len(columns) == len(fmt)
+            and len(set(columns)) == len(columns)  # (checked first: NumPy refuses it)
+            and all(c in _FORMAT_TO_NUMPY for c in fmt)
+        ):
             candidate = np.dtype(
                 [(col, _FORMAT_TO_NUMPY[c]) for col, c in zip(columns, fmt, strict=True)]
             )
-            if candidate.itemsize == length - 3 and len(set(columns)) == len(columns):
+            if candidate.itemsize == length - 3:
                 dtype = candidate
         return DataflashFormat(int(record["Type"]), length, name, fmt, columns, dtype)
+
+    @property
+    def key(self) -> tuple[int, str, int, str, tuple[str, ...]]:
+        """What a record's reading depends on: two definitions with one key read alike."""
+        return (self.type, self.name, self.length, self.format, self.columns)
 
 
 class ColumnError(FieldError):
@@ -261,6 +271,7 @@ class DataflashRecords:
     damage: LogDamage
     formats: dict[str, DataflashFormat] = field(default_factory=dict)
     _by_type: dict[int, np.ndarray] = field(default_factory=dict)
+    _of_name: dict[str, np.ndarray] = field(default_factory=dict)  # the records read as it
     _tables: dict[str, np.ndarray] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
 
@@ -270,16 +281,48 @@ class DataflashRecords:
         for kind in np.flatnonzero(np.diff(bounds)):
             self._by_type[int(kind)] = self.offsets[order[bounds[kind] : bounds[kind + 1]]]
         fmt_offsets = self._by_type.get(_FMT_TYPE, np.zeros(0, dtype=np.int64))
-        definitions: dict[str, list[DataflashFormat]] = {}
-        for record in self._gather(fmt_offsets, _FMT_DTYPE):
-            definition = DataflashFormat.from_record(record)
+        found = [DataflashFormat.from_record(r) for r in self._gather(fmt_offsets, _FMT_DTYPE)]
+        defining: dict[int, list[int]] = {}  # per type, its FMT records (indices into found)
+        for k, definition in enumerate(found):
+            defining.setdefault(definition.type, []).append(k)
             if definition.name:
-                definitions.setdefault(definition.name, []).append(definition)
-        for name, found in definitions.items():
-            self.formats[name] = found[-1]
-            if len({(d.type, d.format, d.columns) for d in found}) > 1:
-                # A log that redefines a name: the last definition is the one decoded.
-                self.notes.append(f"{name} is defined more than once; the last definition used")
+                self.formats[definition.name] = definition  # the last one of each name
+        # Each record is read by its name's last definition. The FMT in force where a
+        # record is (the index took its length from it) must read alike: a log that
+        # redefines a type (damaged, or reusing a type number) has records that the
+        # last definition cannot read, which are left out.
+        kept: dict[str, list[np.ndarray]] = {}
+        left_out: dict[str, int] = {}
+        for kind, offsets in self._by_type.items():
+            indices = defining.get(kind)
+            if not indices:
+                continue
+            # (a FMT record before FMT's own definition: read as the first one)
+            governing = np.searchsorted(fmt_offsets[indices], offsets, side="right") - 1
+            governing = np.maximum(governing, 0)
+            for g in np.unique(governing):
+                definition = found[indices[g]]
+                last = self.formats.get(definition.name)
+                if last is None:
+                    continue
+                mine = offsets[governing == g]
+                if definition.key == last.key:
+                    kept.setdefault(definition.name, []).append(mine)
+                else:
+                    left_out[definition.name] = left_out.get(definition.name, 0) + len(mine)
+        for name in self.formats:
+            # (in file order: a name's records are of one type, their FMTs in order)
+            parts = kept.get(name, [np.zeros(0, dtype=np.int64)])
+            self._of_name[name] = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        for name, count in left_out.items():
+            self.notes.append(
+                f"{name} is defined more than once: {count} of its records, under another "
+                "definition than its last, left out"
+            )
+        if left_out:  # records that cannot be read: the log's damage
+            self.damage = dataclasses.replace(
+                self.damage, bad_records=self.damage.bad_records + sum(left_out.values())
+            )
 
     def _gather(self, offsets: np.ndarray, dtype: np.dtype) -> np.ndarray:
         """Payloads at ``offsets`` (records of one length) as a (N,) array of ``dtype``."""
@@ -288,10 +331,7 @@ class DataflashRecords:
         return np.ascontiguousarray(raw).view(dtype).reshape(len(offsets))
 
     def count(self, name: str) -> int:
-        definition = self.formats.get(name)
-        if definition is None:
-            return 0
-        return len(self._by_type.get(definition.type, ()))
+        return len(self._of_name.get(name, ()))
 
     def has(self, name: str) -> bool:
         """Whether the log holds decodable records of this name."""
@@ -305,8 +345,7 @@ class DataflashRecords:
             if definition is None or definition.dtype is None:
                 self._tables[name] = np.zeros(0, dtype=np.dtype([]))
             else:
-                offsets = self._by_type.get(definition.type, np.zeros(0, dtype=np.int64))
-                self._tables[name] = self._gather(offsets, definition.dtype)
+                self._tables[name] = self._gather(self._of_name[name], definition.dtype)
         return self._tables[name]
 
     def column(self, name: str, column: str, rows: np.ndarray | None = None) -> np.ndarray:
