@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from dataflash_writer import DataflashWriter
 
+from mavest.cli import EXIT_USAGE, main
 from mavest.mavlink.messages import MAVLink
 from mavest.onboard import OnboardLog, OnboardLogError, load
 from mavest.onboard.convert import RECORD_EPOCH_US, to_tlog_bytes
@@ -274,6 +275,22 @@ def test_heartbeats_stop_across_a_confirmed_jump_longer_than_any_gap(tmp_path: P
     assert len(heartbeats) <= 2 * (math.ceil(1000 * STEP_US / 1e6) + 1)
 
 
+def test_a_jump_of_an_onboard_logs_clock_is_said_in_the_logs_terms(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # (it named "tlog", a byte of the conversion in memory and dates of its year 2000)
+    times = _times(1000) + [START_US + 2**40 + STEP_US * k for k in range(1000)]
+    path = imu_log(times).save(tmp_path / "jump.bin")
+    with caplog.at_level("WARNING", logger="mavest"):
+        asyncio.run(replay(path, ServiceConfig()))
+    said = [r.getMessage() for r in caplog.records if "clock jumped" in r.getMessage()]
+    last = (START_US + 999 * STEP_US) * 1e-6
+    assert said == [
+        f"jump.bin: the log's clock jumped forward by 12.7 days at {last:.3f} s of its time; "
+        "read on at the new time"
+    ]
+
+
 def _messages(tlog: bytes) -> list[tuple[int, object]]:
     """(stamp µs, message) of each record of a tlog written by to_tlog_bytes."""
     parser = MAVLink(None)
@@ -393,6 +410,21 @@ def test_a_ulog_imu_without_its_fields_is_one_line_naming_the_file(tmp_path: Pat
     message = str(raised.value)
     assert "\n" not in message and message.startswith("noaccel.ulg: no IMU samples")
     assert "accelerometer_m_s2[0]" in message
+
+
+def test_a_ulog_of_no_usable_imu_sample_is_one_line_as_a_dataflash_log_is(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # times three centuries on: every sample off any timeline (it was an empty stream,
+    # exit 1 and "no IMU stream found (RAW_IMU, …)" on standard output, nothing said)
+    years = 300 * 365 * 86400 * 10**6
+    path = write_ulog(tmp_path / "far.ulg", [years + t for t in _times(1000)])
+    with pytest.raises(OnboardLogError, match=r"^far\.ulg: no IMU samples in this ULog"):
+        load(path)
+    table = tmp_path / "estimates.csv"
+    assert main(["replay", str(path), "--estimates", str(table), "-q"]) == EXIT_USAGE
+    assert capsys.readouterr().err.strip().endswith("no usable sample)")
+    assert not table.exists()
 
 
 @pytest.mark.parametrize(

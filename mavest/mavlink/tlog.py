@@ -110,10 +110,17 @@ class TlogReader:
     """
 
     def __init__(
-        self, data: bytes | mmap.mmap, wanted: frozenset[int] | None = None, name: str = "tlog"
+        self,
+        data: bytes | mmap.mmap,
+        wanted: frozenset[int] | None = None,
+        name: str = "tlog",
+        boot_epoch_us: int | None = None,
     ) -> None:
         self._data = data
         self.name = name  # for the log's lines about it
+        # records stamped with a log's boot time from this Unix time (an onboard log's,
+        # converted in memory): its lines speak of that clock, not of bytes or dates
+        self._boot_epoch_us = boot_epoch_us
         self._wanted = wanted
         self._mav = MAVLink(None)
         self._mav.robust_parsing = False
@@ -340,20 +347,28 @@ class TlogReader:
                     message = decoded
             stats.records += 1
             if last_us is not None and abs(stamp - last_us) > _MAX_TIMESTAMP_JUMP_US:
-                _log.warning("%s", _clock_jump(self.name, last_us, stamp, position))
+                _log.warning(
+                    "%s", _clock_jump(self.name, last_us, stamp, position, self._boot_epoch_us)
+                )
             self._last_us = stamp
             position = self.position = end
             yield TlogRecord(stamp, packet, message)
         self.position = position
 
 
-def _clock_jump(name: str, before_us: int, after_us: int, position: int) -> str:
-    """The line saying that a tlog's recording clock jumped (to a time that stays)."""
+def _clock_jump(
+    name: str, before_us: int, after_us: int, position: int, boot_epoch_us: int | None = None
+) -> str:
+    """The line saying that a tlog's recording clock jumped (to a time that stays); with
+    ``boot_epoch_us``, that a log's own clock did, at which of its times."""
     way = "forward" if after_us > before_us else "back"
+    span = _span(abs(after_us - before_us))
+    if boot_epoch_us is not None:
+        where = f"at {(before_us - boot_epoch_us) * 1e-6:.3f} s of its time"
+        return f"{name}: the log's clock jumped {way} by {span} {where}; read on at the new time"
     return (
-        f"{name}: the recording clock jumped {way} by {_span(abs(after_us - before_us))} "
-        f"at byte {position} ({_utc(before_us)} → {_utc(after_us)}); the records after "
-        "it are read at the new time"
+        f"{name}: the recording clock jumped {way} by {span} at byte {position} "
+        f"({_utc(before_us)} → {_utc(after_us)}); the records after it are read at the new time"
     )
 
 

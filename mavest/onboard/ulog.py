@@ -270,6 +270,10 @@ def load_ulog(path: Path | str) -> OnboardLog:
         raise OnboardLogError(f"{path.name}: no IMU samples in this ULog ({error})") from error
     if imu is None:
         raise OnboardLogError(f"{path.name}: no sensor_combined (IMU) samples in this ULog")
+    if not len(imu.t_us):  # every sample unusable (NaN, a time off the log's timeline)
+        raise OnboardLogError(
+            f"{path.name}: no IMU samples in this ULog (sensor_combined: no usable sample)"
+        )
 
     mag = _magnetometers(build, topics)
     gps_fix, gps_velocity = _gps(build, topics)

@@ -37,7 +37,7 @@ from mavest.mavlink.messages import IMU_MESSAGES, Encoder, StreamKey
 from mavest.mavlink.signing import Signing
 from mavest.mavlink.tlog import TlogError, TlogReader, TlogRecord, TlogWriter, message_ids
 from mavest.onboard import LogDamage, OnboardLogError, detect, load
-from mavest.onboard.convert import to_tlog_bytes
+from mavest.onboard.convert import RECORD_EPOCH_US, to_tlog_bytes
 from mavest.paths import check_outputs
 from mavest.service import bulk
 from mavest.service.config import ServiceConfig
@@ -638,7 +638,7 @@ def _open_log(path: str | Path, config: ServiceConfig) -> _Source:
             ", ".join(map(str, logged)),
         )
     return _Source(
-        TlogReader(data, REPLAY_MESSAGES),
+        TlogReader(data, REPLAY_MESSAGES, name=path.name, boot_epoch_us=RECORD_EPOCH_US),
         f"{path} ({onboard.autopilot} {_ONBOARD_FORMATS.get(onboard.format, onboard.format)})",
         onboard.damage,
         "records",
