@@ -476,6 +476,7 @@ def test_step_counts_and_news_alike_on_one_step_and_on_a_block() -> None:
 
     expected = StreamStats(
         estimated=len(flags),
+        not_started=sum(bool(f & StepFlags.NOT_INITIALISED) for f in flags),
         gps_aided=sum(bool(f & StepFlags.ACCEL_AIDED) for f in flags),
         mag_usable=sum(usable),
         mag_taken=sum(taken(f, u) for f, u in zip(flags, usable, strict=True)),

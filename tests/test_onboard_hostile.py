@@ -291,6 +291,50 @@ def test_a_jump_of_an_onboard_logs_clock_is_said_in_the_logs_terms(
     ]
 
 
+def test_an_accelerometer_that_never_reads_g_is_said_and_nothing_is_scored(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # (a log's accelerometer a millionth of m/s²: no line, exit 0, and the level attitude
+    # the filter starts from scored against the autopilot's, 21° "RMS")
+    log = DataflashWriter()
+    log.define(200, "IMU", IMU_FORMAT, IMU_COLUMNS)
+    for t in _times(4000):
+        log.record("IMU", t, 0.001, -0.002, 0.0005, 0.1e-6, -0.05e-6, -9.8e-6, 0)
+    with_others(log, {}, samples=250)
+    path = log.save(tmp_path / "tiny.bin")
+    for fast in (True, False):  # in bulk, and one record at a time
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="mavest"):
+            report = asyncio.run(replay(path, ServiceConfig(), fast=fast))
+        said = [r.getMessage() for r in caplog.records if "no attitude" in r.getMessage()]
+        assert len(said) == 1 and "of its 4000 samples: the accelerometer never read g" in said[0]
+        (stream,) = report.streams
+        assert stream.vs_autopilot.count == 0 and stream.vs_autopilot.references > 0
+        assert "not scored" in report.summary()
+
+
+def test_a_smoothed_replay_scores_alike_an_accelerometer_that_starts_late(
+    tmp_path: Path,
+) -> None:
+    # estimates before the filter's first attitude, NaN in the comparisons, are the
+    # same count as the smoothed ones compared again (a count that differed: a crash)
+    log = DataflashWriter()
+    log.define(200, "IMU", IMU_FORMAT, IMU_COLUMNS)
+    for k, t in enumerate(_times(8000)):  # 20 s: 15 s scored after the settling
+        scale = 1e-6 if k < 1000 else 1.0
+        log.record("IMU", t, 0.001, -0.002, 0.0005, 0.1 * scale, -0.05 * scale,
+                   -9.80665 * scale, 0)  # fmt: skip
+    with_others(log, {}, samples=500)
+    path = log.save(tmp_path / "late.bin")
+    for fast in (True, False):
+        report = asyncio.run(replay(path, ServiceConfig(), fast=fast, smooth=True))
+        (stream,) = report.streams
+        assert stream.stats.not_started == 1000
+        online = stream.vs_autopilot.result()
+        smoothed = report.smoothed[stream.key].vs_autopilot
+        assert online.count > 0 and smoothed is not None and smoothed.count > 0
+
+
 def _messages(tlog: bytes) -> list[tuple[int, object]]:
     """(stamp µs, message) of each record of a tlog written by to_tlog_bytes."""
     parser = MAVLink(None)

@@ -121,6 +121,9 @@ def _resolve(s: np.void, t: float, r0: float, r1: float, r2: float) -> None:
         x = e0[0] + w * wrap_angle(e1[0] - e0[0])
         y = e0[1] + w * (e1[1] - e0[1])
         z = e0[2] + w * wrap_angle(e1[2] - e0[2])
+    if x != x or y != y or z != z:  # beside an estimate that is none (NaN: no attitude)
+        s.unmatched += 1
+        return
     if t - s.start < s.settle_time:
         return
     s.sums[0] += wrap_angle(x - r0) ** 2
@@ -136,7 +139,7 @@ def _add(s: np.void, kind: int, t: float, e0: float, e1: float, e2: float) -> No
     if kind != ESTIMATE:
         s.references += 1
     if kind == ESTIMATE:
-        if s.started == 0:
+        if s.started == 0 and e0 == e0:  # (the settling starts at the first attitude)
             s.start = t
             s.started = 1
         if s.ours_len > 0 and t <= s.ours_t[(s.ours_first + s.ours_len - 1) % history]:

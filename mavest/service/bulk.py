@@ -809,8 +809,13 @@ class BulkFeed:
         autopilot = self._autopilot(records, decoded, attitudes, stream, rows, t, stream_last_t)
         truth_t = np.empty(0)
         if stream is not None:
+            scored = (
+                answerable(steps.series.flags[index])
+                if steps is not None
+                else np.empty(0, dtype=bool)
+            )
             truth_t = self._compare(
-                stream, decoded, t, euler, rows, truth_rows, last_t_before, autopilot
+                stream, decoded, t, euler, rows, scored, truth_rows, last_t_before, autopilot
             )
         for other in autopilot.streams:
             if other is not stream:  # (an ATTITUDE of a stream not estimated here)
@@ -968,14 +973,17 @@ class BulkFeed:
         t: np.ndarray,
         euler: np.ndarray,
         rows: np.ndarray,
+        scored: np.ndarray,
         truth_rows: np.ndarray,
         last_t_before: float | None,
         autopilot: _Autopilot,
     ) -> np.ndarray:
-        """Our estimates (at ``rows``), and the SIMSTATE truth and the autopilot's
-        ATTITUDE between them, into the comparisons in the order they came; each truth
-        at the time of the last estimate before it, which is returned (NaN: none yet, so
-        not compared)."""
+        """Our estimates (at ``rows``; those not ``scored``, before the filter had an
+        attitude, as NaN), and the SIMSTATE truth and the autopilot's ATTITUDE between
+        them, into the comparisons in the order they came; each truth at the time of the
+        last estimate before it, which is returned (NaN: none yet, so not compared)."""
+        if not scored.all():
+            euler = np.where(scored[:, None], euler, math.nan)
         mine = autopilot.of(stream)
         if mine.any():
             kinds, sort = _in_order(rows, autopilot.rows[mine])

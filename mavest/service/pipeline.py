@@ -161,6 +161,7 @@ class StreamStats:
     clip_realigned: int = 0  # calm again after a clipped gyro: tilt re-aligned
     # samples the filter did not start on: the accelerometer reads g in another unit
     accel_wrong_unit: int = 0
+    not_started: int = 0  # samples estimated before the filter had an attitude, any reason
     reboots: int = 0
     wraps: int = 0
     mag_usable: int = 0  # samples estimated with a usable magnetometer reading
@@ -689,8 +690,10 @@ class Pipeline:
         vehicle.last_t = t
         euler = estimate.euler
         euler_tuple = (float(euler[0]), float(euler[1]), float(euler[2]))
-        stream.vs_autopilot.add_estimate(t, euler_tuple)
-        stream.vs_truth.add_estimate(t, euler_tuple)
+        # (the level attitude the filter starts from is no estimate to score: NaN)
+        scored = euler_tuple if answerable(flags) else _NO_ATTITUDE
+        stream.vs_autopilot.add_estimate(t, scored)
+        stream.vs_truth.add_estimate(t, scored)
         if self.sinks:
             processing = time.perf_counter() - start
             for sink in self.sinks:
@@ -1051,6 +1054,10 @@ def _beat_due(stamps: Any, next_us: int, period_us: int) -> Any:
     return (stamps >= next_us) | (stamps < next_us - period_us)
 
 
+# the angles a comparison takes for an estimate made before the filter had an attitude
+_NO_ATTITUDE = (math.nan, math.nan, math.nan)
+
+
 def answerable(flags: Any) -> Any:
     """Whether an estimate is answered to the vehicle at all: only once the filter has
     an attitude (before, it would send the level attitude it starts from as if it knew
@@ -1243,6 +1250,7 @@ def count_estimated(stats: StreamStats, flags: Any, mag_usable: Any, mag_used: A
     (NOT_INITIALISED: an accelerometer it cannot start on); the GPS-aided ones had
     the vehicle's acceleration removed (ACCEL_AIDED)."""
     stats.estimated += 1 if isinstance(mag_usable, bool) else len(mag_usable)
+    stats.not_started += _count((flags & StepFlags.NOT_INITIALISED) != 0)
     stats.gps_aided += _count((flags & StepFlags.ACCEL_AIDED) != 0)
     update = (flags & (StepFlags.BETWEEN_UPDATES | StepFlags.NOT_INITIALISED)) == 0
     stats.updates += _count(update)
@@ -1340,6 +1348,13 @@ def _who(vehicle: Vehicle) -> str:
 # says so: tilt was then seldom observed (a vehicle always accelerating, or an attitude
 # lost to a gyro offset far beyond the filter's prior, which spins the low-passed force)
 ACCEL_FAR_SHARE = 0.5
+
+
+def never_started(stats: StreamStats) -> bool:
+    """Whether a stream was estimated and the filter never had an attitude, for a
+    reason not already said (the accelerometer in another unit is said as it comes)."""
+    started = stats.not_started < stats.estimated
+    return stats.estimated > 0 and not started and not stats.accel_wrong_unit
 
 
 def accel_seldom_gravity(stats: StreamStats) -> float | None:

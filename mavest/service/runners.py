@@ -48,6 +48,7 @@ from mavest.service.pipeline import (
     Stream,
     accel_seldom_gravity,
     heartbeats_after,
+    never_started,
 )
 from mavest.service.signals import stop_on_signals
 from mavest.service.smoothing import SmoothedStream, smooth_stream
@@ -480,11 +481,24 @@ def _record_outputs(report: RunReport, opened: _Opened) -> None:
 
 def _run_ended(report: RunReport, opened: _Opened, pipeline: Pipeline) -> None:
     """What every run (live or replay) reports when it ends: the outputs that stopped
-    early (and those of which nothing was kept), and a warning for each stream whose
-    accelerometer was mostly kept out of its gravity updates (its tilt is then the
-    gyro's alone, its σ says how unsure; the summary says how often)."""
+    early (and those of which nothing was kept), and a warning for each stream that
+    never had an attitude, or whose accelerometer was mostly kept out of its gravity
+    updates (its tilt is then the gyro's alone, its σ says how unsure; the summary
+    says how often)."""
     _record_outputs(report, opened)
     for stream in pipeline.streams.values():
+        if never_started(stream.stats):
+            tolerance = pipeline.config.estimator.accel_norm_tolerance
+            gravity = pipeline.config.estimator.gravity
+            log.warning(
+                "%s: no attitude from any of its %d samples: the accelerometer never read "
+                "g = %g m/s² within %g m/s² (not in m/s², or never at rest long enough to start)",
+                stream.key,
+                stream.stats.estimated,
+                gravity,
+                tolerance,
+            )
+            continue
         share = accel_seldom_gravity(stream.stats)
         if share is not None:
             log.warning(
