@@ -24,7 +24,7 @@ from mavest.onboard import OnboardLog, OnboardLogError, load
 from mavest.onboard.convert import RECORD_EPOCH_US, to_tlog_bytes
 from mavest.paths import OutputPathError, check_outputs
 from mavest.service.config import ServiceConfig
-from mavest.service.runners import replay
+from mavest.service.runners import Outputs, replay
 
 # --------------------------------------------------------------------------
 # Writing DataFlash logs
@@ -333,6 +333,33 @@ def test_a_smoothed_replay_scores_alike_an_accelerometer_that_starts_late(
         online = stream.vs_autopilot.result()
         smoothed = report.smoothed[stream.key].vs_autopilot
         assert online.count > 0 and smoothed is not None and smoothed.count > 0
+
+
+def test_a_stream_given_up_for_a_lower_instance_stays_in_the_summary(tmp_path: Path) -> None:
+    # IMU2 (instance 1) from the start, IMU (instance 0) from the middle on: the replay
+    # follows instance 0 once it comes; what it estimated from instance 1 before is in
+    # the outputs, and was missing from the summary, the counts and the smoothing
+    log = DataflashWriter()
+    log.define(200, "IMU", IMU_FORMAT, IMU_COLUMNS)
+    log.define(199, "IMU2", IMU_FORMAT, IMU_COLUMNS)
+    for k, t in enumerate(_times(4000)):
+        log.record("IMU2", t, 0.001, -0.002, 0.0005, 0.1, -0.05, -9.80665, 0)
+        if k >= 2000:
+            log.record("IMU", t + 1, 0.001, -0.002, 0.0005, 0.1, -0.05, -9.80665, 0)
+    table = tmp_path / "estimates.csv"
+    report = asyncio.run(
+        replay(log.save(tmp_path / "two.bin"), ServiceConfig(), Outputs(estimates=table),
+               smooth=True)
+    )  # fmt: skip
+    first, then = report.streams
+    assert (first.key.instance, then.key.instance) == (1, 0)
+    # (instance 1 up to its sample at the first of instance 0's)
+    assert (first.stats.estimated, then.stats.estimated) == (2001, 2000)
+    assert len(table.read_text().splitlines()) == 1 + 4001
+    assert set(report.smoothed) == {first.key, then.key}
+    summary = report.summary()
+    assert "4001 IMU samples estimated" in summary
+    assert f"{first.key} → ATTITUDE until " in summary and f", then {then.key}:" in summary
 
 
 def _messages(tlog: bytes) -> list[tuple[int, object]]:

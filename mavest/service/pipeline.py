@@ -204,6 +204,7 @@ class Stream:
     held: list[ImuSample] = field(default_factory=list)
     # what its filter took, to be smoothed after the run (Pipeline.smoothing); else None
     inputs: RecordedInputs | None = None
+    followed_by: StreamKey | None = None  # the stream estimated instead of it from then on
 
     @property
     def rate(self) -> float:
@@ -303,7 +304,10 @@ class Pipeline:
         self.out_tlog = out_tlog
         self.sinks = sinks if sinks is not None else []
         self.now_us = now_us if now_us is not None else (lambda: 0)
-        self.streams: dict[StreamKey, Stream] = {}
+        self.streams: dict[StreamKey, Stream] = {}  # those estimated from now on
+        # streams estimated until a better one of their vehicle's came (a lower instance):
+        # what they estimated is in the outputs, so the summary and the smoothing keep them
+        self.given_up: dict[StreamKey, Stream] = {}
         self.vehicles: dict[tuple[int, int], Vehicle] = {}
         self._encoders: dict[int, Encoder] = {}
         # pymavlink's decoder of every packet found (one: it keeps no state of a peer's;
@@ -592,13 +596,20 @@ class Pipeline:
                 self.streams[vehicle.primary].primary = False
                 log.info("%s: following %s instead of %s", _who(vehicle), key, vehicle.primary)
                 if wanted.imu != "all":
-                    del self.streams[vehicle.primary]
+                    given_up = self.streams.pop(vehicle.primary)
+                    given_up.followed_by = key
+                    self.given_up[vehicle.primary] = given_up
                     self._not_followed.add(vehicle.primary)
             else:
                 log.info("%s: estimating from %s", _who(vehicle), key)
             vehicle.primary = key
             stream.primary = True
         return stream
+
+    @property
+    def every_stream(self) -> list[Stream]:
+        """Every stream estimated: those given up for a better one, then the others."""
+        return [*self.given_up.values(), *self.streams.values()]
 
     # ---------------------------------------------------------------- estimation
 

@@ -140,7 +140,7 @@ class RunReport:
 
     @property
     def streams(self) -> list[Stream]:
-        return list(self.pipeline.streams.values())
+        return self.pipeline.every_stream
 
     def summary(self) -> str:
         return format_summary(self)
@@ -486,7 +486,7 @@ def _run_ended(report: RunReport, opened: _Opened, pipeline: Pipeline) -> None:
     updates (its tilt is then the gyro's alone, its σ says how unsure; the summary
     says how often)."""
     _record_outputs(report, opened)
-    for stream in pipeline.streams.values():
+    for stream in pipeline.every_stream:
         if never_started(stream.stats):
             tolerance = pipeline.config.estimator.accel_norm_tolerance
             gravity = pipeline.config.estimator.gravity
@@ -536,8 +536,9 @@ async def _smooth(report: RunReport, opened: _Opened, stop: asyncio.Event | None
         report.smoothing_skipped = "smoothing skipped: the replay was interrupted"
         log.warning("%s", report.smoothing_skipped)
         return
-    smoothed: dict[StreamKey, SmoothedStream] = {}
-    for key, stream in report.pipeline.streams.items():
+    smoothed: dict[StreamKey, Stream] = {}
+    results: dict[StreamKey, SmoothedStream] = {}
+    for stream in report.pipeline.every_stream:
         result = await _unless_stopped(functools.partial(smooth_stream, stream), stop)
         if stop is not None and stop.is_set():
             report.interrupted = True
@@ -545,10 +546,10 @@ async def _smooth(report: RunReport, opened: _Opened, stop: asyncio.Event | None
             log.warning("%s", report.smoothing_skipped)
             return
         if result is not None:
-            smoothed[key] = result
-    for key, result in smoothed.items():
+            smoothed[stream.key], results[stream.key] = stream, result
+    for key, result in results.items():
         report.smoothed[key] = result
-        opened.on_smoothed(report.pipeline.streams[key], result)
+        opened.on_smoothed(smoothed[key], result)
 
 
 _T = TypeVar("_T")
@@ -719,7 +720,7 @@ def _feed(feed: bulk.BulkFeed, records: RecordIndex, period_us: int, next_us: in
 
 
 def _estimated(pipeline: Pipeline) -> int:
-    return sum(s.stats.estimated for s in pipeline.streams.values())
+    return sum(s.stats.estimated for s in pipeline.every_stream)
 
 
 async def run_live(
@@ -1003,11 +1004,16 @@ def format_summary(report: RunReport) -> str:
         lines.append(
             "  no IMU stream found (RAW_IMU, SCALED_IMU/2/3 or HIGHRES_IMU from a vehicle)"
         )
-    for stream in pipeline.streams.values():
+    for stream in pipeline.every_stream:
         stats = stream.stats
         role = " → ATTITUDE" if stream.primary else ""
+        if stream.followed_by is not None:
+            until = f" until {stats.last_t:.1f} s" if stats.last_t is not None else ""
+            role = f" → ATTITUDE{until}, then {stream.followed_by}"
         # (fewer than estimated at --attitude-rate, or while the filter has no attitude)
-        answered = f", {stats.answered} answered" if stream.primary else ""
+        answered = (
+            f", {stats.answered} answered" if stream.primary or stream.followed_by else ""
+        )
         lines.append(
             f"  {stream.key}{role}: {stats.estimated} of {stats.received} samples over "
             f"{stats.span:.1f} s at {stream.rate:.1f} Hz{answered}"
