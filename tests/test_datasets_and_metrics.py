@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
@@ -167,6 +167,8 @@ def test_rmse_uses_mask_and_skips_nan_truth() -> None:
     st.floats(0.0, 0.3),
     st.integers(0, 2**32 - 1),
 )
+# errors spread over half a turn: a search from their circular mean missed the optimum
+@example(offset=0.875, heading_noise=0.9467566887890624, tilt_noise=0.15625, seed=494308968)
 def test_remove_heading_offset_never_hurts(
     offset: float, heading_noise: float, tilt_noise: float, seed: int
 ) -> None:

@@ -34,7 +34,6 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 __all__ = [
     "AttitudeErrors",
@@ -199,37 +198,32 @@ def wrap_angles(angle: np.ndarray | float) -> np.ndarray:
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
-def _heading_rms(psi: np.ndarray, delta: float) -> float:
-    """RMS heading error after turning the estimate by δ about world z."""
-    return float(np.sqrt(np.mean(wrap_angles(psi + delta) ** 2)))
-
-
 def heading_offset(q_est: np.ndarray, q_true: np.ndarray, mask: np.ndarray | None = None) -> float:
     """The constant turn δ about world z (rad) that minimises the heading RMSE of q_z(δ) ⊗ q_est.
 
     Left-multiplying by a world-vertical rotation changes only the twist of the error
     (q_z(δ) ⊗ q_twist ⊗ q_swing), so each sample's heading error becomes ψᵢ + δ wrapped,
-    and the inclination error is untouched. The minimiser of Σ wrap(ψᵢ + δ)² is found in
-    two steps: the circular mean m of ψᵢ gives a centre free of wrap-around, the linear
-    mean of ψᵢ unwrapped around m gives δ = −(m + mean(wrap(ψᵢ − m))), exact when the
-    errors do not straddle m ± π. A bounded 1-D search around that value and δ = 0
-    are then compared, and the best of the three is returned, so the result never
-    increases the heading RMSE.
+    and the inclination error is untouched. The minimiser of Σ wrap(ψᵢ + δ)² is exact:
+    at the optimum the errors ψᵢ + δ lie within one turn, so the ψᵢ, sorted, are cut
+    somewhere and the part before the cut taken one turn on; for each of the n cuts the
+    best δ is minus the mean and the cost n times the variance of the values so taken
+    (running sums: O(n log n)), and the least of them is the global minimum, which a
+    search from the circular mean can miss when the errors spread over half a turn.
     """
     psi = _select(signed_heading_error(q_est, q_true), mask)
-    psi = psi[np.isfinite(psi)]
-    if psi.size == 0:
+    psi = np.sort(wrap_angles(psi[np.isfinite(psi)]))
+    n = psi.size
+    if n == 0:
         return 0.0
-    centre = float(np.arctan2(np.mean(np.sin(psi)), np.mean(np.cos(psi))))
-    candidates = [0.0, float(wrap_angles(-(centre + np.mean(wrap_angles(psi - centre)))))]
-    search = minimize_scalar(
-        lambda d: _heading_rms(psi, d),
-        bounds=(candidates[1] - 0.2, candidates[1] + 0.2),
-        method="bounded",
-        options={"xatol": 1e-10},
-    )
-    candidates.append(float(wrap_angles(search.x)))
-    return min(candidates, key=lambda d: _heading_rms(psi, d))
+    turn = 2.0 * np.pi
+    # cut j: psi[j:], then psi[:j] + 2π; their sum and sum of squares for every j
+    before = np.concatenate(([0.0], np.cumsum(psi)))  # Σ psi[:j]
+    j = np.arange(n)
+    total = before[-1] + turn * j
+    squares = np.sum(psi**2) + 2.0 * turn * before[:-1] + turn**2 * j
+    cost = squares - total**2 / n  # n × the variance
+    best = int(np.argmin(cost))
+    return float(wrap_angles(-total[best] / n))
 
 
 def remove_heading_offset(
