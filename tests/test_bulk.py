@@ -911,3 +911,37 @@ def test_records_written_in_bulk_end_at_a_whole_record_on_a_full_disk(
     assert len(written) in ends and written == data[: ends[writer.records]]
     assert (writer.error is None) == (free >= len(data))
     assert len(written) <= free
+
+
+@pytest.mark.parametrize("fast", [True, False], ids=["bulk", "one-by-one"])
+def test_an_autopilot_attitude_that_is_no_angle_is_not_compared(tmp_path: Path, fast: bool) -> None:
+    # a vehicle's ATTITUDE of NaN, infinity or 1e30 rad made the comparison NaN (or its
+    # RMS absurd) and, into a recording, printed NumPy's warnings; it is passed over
+    import warnings
+
+    flight = tmp_path / "flight.tlog"
+    write_autopilot_tlog(flight, 30.0, 200.0, seed=4)
+    encoder = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    spoilt = tmp_path / "spoilt.tlog"
+    writer = TlogWriter(spoilt)
+    bad = (math.nan, math.inf, -math.inf, 1e30)
+    count = 0
+    for record in TlogReader.open(flight):
+        writer.write(record.timestamp_us, record.packet)
+        if record.message is not None and record.message.get_type() == "ATTITUDE":
+            x = bad[count % len(bad)]
+            count += 1
+            m = record.message
+            packet = encoder.attitude_encode(m.time_boot_ms, x, x, x, 0.0, 0.0, 0.0)
+            writer.write(record.timestamp_us, packet.pack(encoder))
+    writer.close()
+    assert count > 100
+    clean = asyncio.run(replay(flight, ServiceConfig(), fast=fast))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        report = asyncio.run(
+            replay(spoilt, ServiceConfig(), Outputs(rrd=tmp_path / "o.rrd"), fast=fast)
+        )
+    (ours,), (theirs,) = report.streams, clean.streams
+    assert ours.vs_autopilot.result() == theirs.vs_autopilot.result()
+    assert ours.vs_autopilot.references == theirs.vs_autopilot.references

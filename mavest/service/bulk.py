@@ -89,6 +89,7 @@ from mavest.service.pipeline import (
     reject_sample,
     report_accel_unit,
     usable_mag,
+    usable_reference,
     valid_sample,
 )
 
@@ -803,6 +804,7 @@ class BulkFeed:
             if steps is not None and steps.rows.shape[0]:
                 kept = index = self._book(stream, vehicle, steps)
             truth_rows = start + np.flatnonzero(decoded.kind[start:stop] == TRUTH)
+            truth_rows = truth_rows[usable_reference(decoded.truth[truth_rows])]
         t = steps.t[index] if steps is not None else np.empty(0)
         euler = steps.euler[index] if steps is not None else np.empty((0, 3))
         rows = steps.rows[index] if steps is not None else index
@@ -855,6 +857,7 @@ class BulkFeed:
             if compared is stream:  # its stats.last_t at each
                 before = _time_at(estimate_rows, estimate_t, rows[mine], last_t)
             mine = mine[~autopilot_restarted(t[mine], before)]
+            mine = mine[usable_reference(decoded.attitude[rows[mine]])]
             known = [k for k, other in enumerate(streams) if other is compared]
             target[mine] = known[0] if known else len(streams)
             if not known:

@@ -830,6 +830,8 @@ class Pipeline:
         if stream is None:
             return
         euler = (float(message.roll), float(message.pitch), float(message.yaw))
+        if not usable_reference(euler):
+            return
         if source == "truth":
             stream.vs_truth.add_reference(t, euler)
         elif autopilot_restarted(t, stream.stats.last_t):
@@ -1063,6 +1065,14 @@ def _beat_due(stamps: Any, next_us: int, period_us: int) -> Any:
     """Whether a HEARTBEAT is due after a record of this time (a number, or an array):
     at or past ``next_us``, or from before the last one (the clock set back)."""
     return (stamps >= next_us) | (stamps < next_us - period_us)
+
+
+def usable_reference(euler: Any) -> Any:
+    """Whether a reference attitude (the autopilot's, the simulator's truth: its roll,
+    pitch, yaw; or an (N, 3) array of them) can be compared with: every angle finite
+    and within a turn (a NaN would make the whole comparison NaN, 1e30 rad its RMS)."""
+    with np.errstate(invalid="ignore"):
+        return np.all(np.abs(np.asarray(euler)) <= 2.0 * math.pi, axis=-1)
 
 
 # the angles a comparison takes for an estimate made before the filter had an attitude

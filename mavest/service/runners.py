@@ -1011,9 +1011,7 @@ def format_summary(report: RunReport) -> str:
             until = f" until {stats.last_t:.1f} s" if stats.last_t is not None else ""
             role = f" → ATTITUDE{until}, then {stream.followed_by}"
         # (fewer than estimated at --attitude-rate, or while the filter has no attitude)
-        answered = (
-            f", {stats.answered} answered" if stream.primary or stream.followed_by else ""
-        )
+        answered = f", {stats.answered} answered" if stream.primary or stream.followed_by else ""
         lines.append(
             f"  {stream.key}{role}: {stats.estimated} of {stats.received} samples over "
             f"{stats.span:.1f} s at {stream.rate:.1f} Hz{answered}"
