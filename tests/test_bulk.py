@@ -415,7 +415,14 @@ def test_sample_rules_decide_alike_on_one_sample_and_on_columns() -> None:
     """The pipeline's sample rules take one sample (numbers) live and a block (columns)
     in replay: each way the same verdicts as a plain statement of the rule, a bool for
     one sample; NaN, infinities, -0.0 and values at and just past the limits among them."""
-    from mavest.service.pipeline import MAX_ACCEL, MAX_GYRO, MAX_MAG, usable_mag, valid_sample
+    from mavest.service.pipeline import (
+        MAX_ACCEL,
+        MAX_GYRO,
+        MAX_MAG,
+        MAX_TIME,
+        usable_mag,
+        valid_sample,
+    )
 
     values = [0.0, -0.0, 1.0, -MAX_GYRO, MAX_GYRO, math.nextafter(MAX_GYRO, math.inf)]
     values += [MAX_ACCEL, -math.nextafter(MAX_ACCEL, math.inf), MAX_MAG, 1e9]
@@ -427,24 +434,26 @@ def test_sample_rules_decide_alike_on_one_sample_and_on_columns() -> None:
             rng.choice(values) if rng.random() < 0.3 else rng.uniform(-20.0, 20.0) for _ in range(3)
         )
 
-    samples = [(axes(), axes(), axes(), rng.random() < 0.1) for _ in range(5000)]
+    times = [0.0, 1e3, 1.7e9, math.nextafter(MAX_TIME, 0.0), MAX_TIME, 1.8e13]
+    samples = [(axes(), axes(), axes(), rng.random() < 0.1, rng.choice(times)) for _ in range(5000)]
     expected_valid, expected_mag = [], []
-    for gyro, accel, mag, saturated in samples:
+    for gyro, accel, mag, saturated, time in samples:
         expected_valid.append(
             _within(gyro, MAX_GYRO)
             and _within(accel, MAX_ACCEL)
             and not saturated
             and accel != (0.0, 0.0, 0.0)
+            and time < MAX_TIME
         )
         expected_mag.append(mag != (0.0, 0.0, 0.0) and _within(mag, MAX_MAG))
-        one = valid_sample(gyro, accel, saturated)
+        one = valid_sample(gyro, accel, saturated, time)
         assert type(one) is bool and one == expected_valid[-1]
         one = usable_mag(mag)
         assert type(one) is bool and one == expected_mag[-1]
     assert 0.05 * len(samples) < sum(expected_valid) < 0.95 * len(samples)
     gyro, accel, mag = (np.array([s[k] for s in samples]) for k in range(3))
-    saturated = np.array([s[3] for s in samples])
-    block = valid_sample(tuple(gyro.T), tuple(accel.T), saturated)
+    saturated, time = (np.array([s[k] for s in samples]) for k in (3, 4))
+    block = valid_sample(tuple(gyro.T), tuple(accel.T), saturated, time)
     assert block.tolist() == expected_valid
     assert usable_mag(tuple(mag.T)).tolist() == expected_mag
 
@@ -945,3 +954,30 @@ def test_an_autopilot_attitude_that_is_no_angle_is_not_compared(tmp_path: Path, 
     (ours,), (theirs,) = report.streams, clean.streams
     assert ours.vs_autopilot.result() == theirs.vs_autopilot.result()
     assert ours.vs_autopilot.references == theirs.vs_autopilot.references
+
+
+@pytest.mark.parametrize("fast", [True, False], ids=["bulk", "one-by-one"])
+def test_a_time_no_clock_reads_is_a_rejected_sample(
+    tmp_path: Path, fast: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    # time_usec from 1e16 (317 years): estimated, its rows were lost from the recording
+    # (Rerun's time is int64 nanoseconds) with NumPy's and Rerun's warnings printed
+    import warnings
+
+    encoder = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    path = tmp_path / "far.tlog"
+    writer = TlogWriter(path)
+    for k in range(400):
+        stamp = 1_700_000_000_000_000 + 5000 * k
+        packet = encoder.raw_imu_encode(10**16 + 5000 * k, 0, 0, -1000, 1, -2, 3, 0, 0, 0)
+        writer.write(stamp, packet.pack(encoder))
+    writer.close()
+    with warnings.catch_warnings(), caplog.at_level("WARNING", logger="mavest"):
+        warnings.simplefilter("error")
+        config = ServiceConfig().replace(input={"imu": "RAW_IMU"})
+        report = asyncio.run(replay(path, config, Outputs(rrd=tmp_path / "o.rrd"), fast=fast))
+    (stream,) = report.streams
+    assert stream.stats.estimated == 0 and stream.stats.rejected == 400
+    said = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
+    assert said == [f"{stream.key}: sample rejected, its time beyond 9e+09 s (285 years): "
+                    "no clock's (all such are counted as rejected)"]  # fmt: skip

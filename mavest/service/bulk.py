@@ -488,7 +488,8 @@ class BulkFeed:
         alone if it is not plain. Returns where the next run starts."""
         began = time.perf_counter()
         gyro, accel = decoded.gyro[rows], decoded.accel[rows]
-        valid = valid_sample(tuple(gyro.T), tuple(accel.T), decoded.saturated[rows])
+        time_s = decoded.ticks[rows] * decoded.tick[rows]
+        valid = valid_sample(tuple(gyro.T), tuple(accel.T), decoded.saturated[rows], time_s)
         plain = int(np.argmin(valid)) if not valid.all() else rows.shape[0]
         tick = float(decoded.tick[rows[0]])
         ticks = decoded.ticks[rows[:plain]]

@@ -95,6 +95,9 @@ log = logging.getLogger("mavest")
 # A sample beyond these is a broken sensor or a corrupt packet, never flight.
 MAX_GYRO = MAX_ANGULAR_RATE  # rad/s (≈ 2900°/s; the filter skips such a sample too)
 MAX_ACCEL = MAX_SPECIFIC_FORCE  # m/s² (50 g)
+# s: no vehicle's clock reads 285 years (since boot, or since 1970), and a Rerun
+# recording's time, int64 nanoseconds, ends at 292: its rows would be lost there
+MAX_TIME = 9.0e9
 MAX_MAG = 1000.0  # µT (10 gauss; the Earth's field is 25–65 µT)
 # Without a magnetometer for this long, a stream is reported as 6-D (once).
 MAG_WAIT = 2.0  # s
@@ -618,7 +621,7 @@ class Pipeline:
         stats.received += 1
         gyro, accel = sample.gyro, sample.accel
         # before the clock: a rejected sample's timestamp is not believed either
-        if not valid_sample(gyro, accel, sample.saturated):
+        if not valid_sample(gyro, accel, sample.saturated, sample.ticks * sample.tick):
             reject_sample(stream, _rejection_reason(sample))
             if sample.gyro_saturated:  # the rotation it missed is unknown
                 stream.estimator.gyro_clipped()
@@ -1313,6 +1316,8 @@ def _rejection_reason(sample: ImuSample) -> str:
         # no real accelerometer reads exactly nothing on three axes (noise alone moves
         # it): the message is empty, e.g. ArduPilot's SCALED_IMU3 without a third IMU
         return "accelerometer all zero: no sensor data"
+    if sample.ticks * sample.tick >= MAX_TIME:
+        return f"its time beyond {MAX_TIME:.3g} s (285 years): no clock's"
     return "beyond any sensor's range"
 
 
@@ -1347,12 +1352,17 @@ def reads_something(axes: Axes) -> Any:
     return (x != 0.0) | (y != 0.0) | (z != 0.0)
 
 
-def valid_sample(gyro: Axes, accel: Axes, saturated: Any) -> Any:
+def valid_sample(gyro: Axes, accel: Axes, saturated: Any, time: Any) -> Any:
     """Whether an IMU sample is one to estimate from: both sensors within any sensor's
-    range, neither at its integer field's limit, an accelerometer that reads something."""
+    range, neither at its integer field's limit, an accelerometer that reads something,
+    a time (s, as its message gives it) that a vehicle's clock can read."""
     not_saturated = saturated ^ True  # (``not``, for a bool and for a mask alike)
     return (
-        within(gyro, MAX_GYRO) & within(accel, MAX_ACCEL) & not_saturated & reads_something(accel)
+        within(gyro, MAX_GYRO)
+        & within(accel, MAX_ACCEL)
+        & not_saturated
+        & reads_something(accel)
+        & (time < MAX_TIME)
     )
 
 
