@@ -6,6 +6,7 @@ estimates keep coming, and the files left behind are valid."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import itertools
 import logging
@@ -314,6 +315,44 @@ def test_a_tcpin_client_that_drops_and_reconnects_is_served_again() -> None:
         answered, sent = flight.answered_between(start, start + 1.5)
         assert sent > 0 and answered >= 0.97 * sent, (start, answered, sent, text)
     assert text.count("client") >= 4 and text.count(" left") >= 2, text
+
+
+def test_a_tcp_client_that_never_reads_costs_a_bounded_backlog(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # what was sent to a client that never reads was held for it, without end (the
+    # service's memory grew by the answers' rate); past the backlog it is dropped
+    port = free_port()
+    packet = bytes(100)
+
+    async def scenario() -> int:
+        link = make_link(parse_endpoint(f"tcpin:127.0.0.1:{port}"))
+        await link.start(lambda link, data, peer: None)
+        client = socket.create_connection(("127.0.0.1", port))
+        try:
+            await asyncio.sleep(0.2)  # (accepted)
+            for _ in range(400):  # 40 MB, given the loop's turn between bursts
+                for _ in range(1000):
+                    link.send(packet)
+                await asyncio.sleep(0)
+            await asyncio.sleep(0.2)
+            received = 0
+            client.setblocking(False)
+            loop = asyncio.get_running_loop()
+            with contextlib.suppress(TimeoutError):
+                while chunk := await asyncio.wait_for(loop.sock_recv(client, 1 << 20), 0.5):
+                    received += len(chunk)
+            return received
+        finally:
+            client.close()
+            link.close()
+
+    with caplog.at_level("INFO", logger="mavest"):
+        received = asyncio.run(scenario())
+    # (the backlog, and what the two sockets' buffers took: a few MB)
+    assert 0 < received < 20 * 1024 * 1024, received
+    said = [r.getMessage() for r in caplog.records if "does not read" in r.getMessage()]
+    assert len(said) == 1, said
 
 
 # ------------------------------------------------------------------ a port already taken

@@ -15,8 +15,8 @@ the pipeline finds the packets in them (a byte stream's per peer, so that stream
 from different peers never interleave inside a packet). A UDP sender becomes a
 peer, sent every reply, only once a datagram of its holds a MAVLink packet whose
 CRC checks. Sending never blocks: a
-link that cannot send right now (no peer yet, TCP reconnecting) drops the
-packet.
+link that cannot send right now (no peer yet, TCP reconnecting, a TCP peer that
+leaves :data:`TCP_BACKLOG` bytes unread) drops the packet.
 """
 
 from __future__ import annotations
@@ -299,6 +299,7 @@ class TcpClientLink(Link):
         self.max_backoff = max_backoff
         self._writer: asyncio.StreamWriter | None = None
         self._task: asyncio.Task[None] | None = None
+        self._dropping: set[asyncio.StreamWriter] = set()  # the connection, if unread
 
     async def start(self, receiver: Receiver) -> None:
         await super().start(receiver)
@@ -354,13 +355,45 @@ class TcpClientLink(Link):
         writer = self._writer
         if writer is None or writer.is_closing():
             return
-        writer.write(packet)
+        _write_or_drop(writer, packet, self._dropping, self.endpoint, "the peer")
 
     def close(self) -> None:
         if self._task is not None:
             self._task.cancel()
         if self._writer is not None:
             self._writer.close()
+
+
+# Bytes a TCP peer may leave unread before what is sent to it is dropped: a peer that
+# never reads (or a link slower than the answers) would otherwise hold every packet
+# in memory, for as long as it stays connected.
+TCP_BACKLOG = 256 * 1024
+
+
+def _write_or_drop(
+    writer: asyncio.StreamWriter,
+    packet: bytes,
+    dropping: set[asyncio.StreamWriter],
+    endpoint: Any,
+    who: str,
+) -> None:
+    """Send, unless ``TCP_BACKLOG`` bytes already wait for this peer: then drop, as a
+    link that cannot send does, said once while it lasts (``dropping``: the peers it
+    lasts for)."""
+    waiting = writer.transport.get_write_buffer_size()
+    if waiting < TCP_BACKLOG:
+        if writer in dropping:
+            dropping.discard(writer)
+            log.info("%s: %s reads again: sending to it again", endpoint, who)
+        writer.write(packet)
+    elif writer not in dropping:
+        dropping.add(writer)
+        log.warning(
+            "%s: %s does not read what is sent (%d kB wait): dropping packets to it until it does",
+            endpoint,
+            who,
+            waiting // 1024,
+        )
 
 
 class TcpServerLink(Link):
@@ -370,6 +403,7 @@ class TcpServerLink(Link):
         super().__init__(endpoint)
         self._server: asyncio.base_events.Server | None = None
         self._clients: set[asyncio.StreamWriter] = set()
+        self._dropping: set[asyncio.StreamWriter] = set()  # clients that do not read
 
     async def start(self, receiver: Receiver) -> None:
         await super().start(receiver)
@@ -391,13 +425,15 @@ class TcpServerLink(Link):
             pass
         finally:
             self._clients.discard(writer)
+            self._dropping.discard(writer)
             writer.close()
             log.info("%s: client %s left", self.endpoint, peer)
 
     def send(self, packet: bytes) -> None:
         for writer in list(self._clients):
             if not writer.is_closing():
-                writer.write(packet)
+                peer = writer.get_extra_info("peername")
+                _write_or_drop(writer, packet, self._dropping, self.endpoint, f"client {peer}")
 
     def close(self) -> None:
         for writer in list(self._clients):
