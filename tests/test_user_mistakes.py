@@ -5,6 +5,7 @@ code per outcome."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import socket
@@ -490,25 +491,53 @@ def test_a_low_imu_rate_is_warned_once_and_repeats_are_counted(
     assert "more lines like this not shown" in err
 
 
-def test_the_repeat_limiter_counts_what_it_holds_back() -> None:
-    limiter = RepeatLimiter(burst=2, period=math.inf)
-    logger = logging.getLogger("mavest.test_repeats")
+@contextlib.contextmanager
+def _limited(limiter: RepeatLimiter) -> Iterator[tuple[logging.Logger, _Lines]]:
+    """A logger of its own whose lines go through ``limiter`` into the handler's list."""
+    logger = logging.getLogger(f"mavest.test_repeats_{id(limiter)}")
     handler = _Lines()
     handler.addFilter(limiter)
     logger.addHandler(handler)
     logger.propagate = False
     try:
+        yield logger, handler
+    finally:
+        logger.removeHandler(handler)
+
+
+def test_the_repeat_limiter_counts_what_it_holds_back() -> None:
+    limiter = RepeatLimiter(burst=2, period=math.inf)
+    with _limited(limiter) as (logger, handler):
         for i in range(10):
             logger.warning("gap of %d s", i)
         logger.warning("another kind")
         limiter.report(logger)
-    finally:
-        logger.removeHandler(handler)
     assert handler.lines == [
         "gap of 0 s",
         "gap of 1 s",
         "another kind",
         "8 more lines like this not shown, the last: gap of 9 s",
+    ]
+
+
+def test_the_repeat_limiter_keeps_each_subjects_first_lines() -> None:
+    # one vehicle rebooting every second hid another's one reboot: the kind was the
+    # template alone; a thousand vehicles are not a thousand lines either
+    limiter = RepeatLimiter(burst=2, period=math.inf, subjects=3)
+    with _limited(limiter) as (logger, handler):
+        for i in range(10):
+            logger.warning("%s: time went back %d", "vehicle 8/1", i)
+        logger.warning("%s: time went back %d", "vehicle 2/1", 0)
+        for k in range(3, 8):
+            logger.warning("%s: time went back %d", f"vehicle {k}/1", 0)
+        limiter.report(logger)
+    assert handler.lines == [
+        "vehicle 8/1: time went back 0",
+        "vehicle 8/1: time went back 1",
+        "vehicle 2/1: time went back 0",
+        "vehicle 3/1: time went back 0",
+        "8 more lines like this not shown, the last: vehicle 8/1: time went back 9",
+        "4 more lines like this not shown, the last: vehicle 7/1: time went back 0",
     ]
 
 
