@@ -981,3 +981,37 @@ def test_a_time_no_clock_reads_is_a_rejected_sample(
     said = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
     assert said == [f"{stream.key}: sample rejected, its time beyond 9e+09 s (285 years): "
                     "no clock's (all such are counted as rejected)"]  # fmt: skip
+
+
+@pytest.mark.parametrize("fast", [True, False], ids=["bulk", "one-by-one"])
+def test_samples_dropped_as_repeated_or_late_are_said_once(
+    tmp_path: Path, fast: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    # (counted in the summary only: two vehicles sharing an id were followed as one,
+    # the answers drifting to the other's attitude, without a word while it ran)
+    encoder = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    packets = [
+        encoder.raw_imu_encode(1_000_000 + 5000 * k, 0, 0, -1000, 1, -2, 3, 0, 0, 0).pack(encoder)
+        for k in range(2000)
+    ]
+    order: list[int] = []
+    for k in range(2000):
+        order.append(k)
+        if k % 10 == 9:
+            order.append(k)  # the same again
+        if k % 50 == 49:
+            order.append(k - 3)  # one late
+    path = tmp_path / "repeats.tlog"
+    writer = TlogWriter(path)
+    for n, k in enumerate(order):
+        writer.write(1_700_000_000_000_000 + 1000 * n, packets[k])
+    writer.close()
+    with caplog.at_level("WARNING", logger="mavest"):
+        report = asyncio.run(replay(path, ServiceConfig(), fast=fast))
+    (stream,) = report.streams
+    assert (stream.stats.duplicates, stream.stats.out_of_order) == (200, 40)
+    said = [r.getMessage() for r in caplog.records if ": dropped (" in r.getMessage()]
+    assert [line.split(": dropped")[0] for line in said] == [
+        f"{stream.key}: a sample with the time of the one before",
+        f"{stream.key}: a sample older than the one before",
+    ]

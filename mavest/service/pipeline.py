@@ -634,8 +634,20 @@ class Pipeline:
         if not event.used:
             if event is ClockEvent.DUPLICATE:
                 stats.duplicates += 1
+                if stats.duplicates == 1:
+                    log.warning(
+                        "%s: a sample with the time of the one before: dropped (all such are "
+                        "counted; the same packet by two routes, or two sources sharing an id?)",
+                        stream.key,
+                    )
             elif event is ClockEvent.OUT_OF_ORDER:
                 stats.out_of_order += 1
+                if stats.out_of_order == 1:
+                    log.warning(
+                        "%s: a sample older than the one before: dropped (all such are "
+                        "counted; a link that reorders, or two sources sharing an id?)",
+                        stream.key,
+                    )
             else:
                 stats.off_timeline += 1
                 # perhaps the start of a new timeline (a reboot, a jump): kept until the
