@@ -541,6 +541,24 @@ def test_the_repeat_limiter_keeps_each_subjects_first_lines() -> None:
     ]
 
 
+def test_ids_without_end_are_followed_up_to_a_bound(caplog: pytest.LogCaptureFixture) -> None:
+    # 5000 spoofed (system, component) ids of 3 RAW_IMU each took the service from 150
+    # to 550 MB and its summary to 16,745 lines
+    from mavest.service.pipeline import MAX_STREAMS
+
+    pipeline = Pipeline(ServiceConfig())
+    decoder = mavlink2.MAVLink(None)
+    with caplog.at_level("WARNING", logger="mavest"):
+        for system in range(1, 201):
+            encoder = mavlink2.MAVLink(None, srcSystem=system, srcComponent=1)
+            for k in range(3):
+                packet = encoder.raw_imu_encode(1000 * k, 0, 0, -1000, 1, -2, 3, 0, 0, 0)
+                pipeline.on_message(decoder.decode(bytearray(packet.pack(encoder))), 1000 * k)
+    assert len(pipeline.streams) == MAX_STREAMS
+    said = [r.getMessage() for r in caplog.records if "streams followed already" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("RAW_IMU[0] from 65/1: 64 IMU streams")
+
+
 # ------------------------------------------------------------------ request rate
 
 

@@ -98,6 +98,10 @@ MAX_ACCEL = MAX_SPECIFIC_FORCE  # m/s² (50 g)
 # s: no vehicle's clock reads 285 years (since boot, or since 1970), and a Rerun
 # recording's time, int64 nanoseconds, ends at 292: its rows would be lost there
 MAX_TIME = 9.0e9
+# The IMU streams a run follows at most: each holds a filter and its comparisons (and
+# a replay's smoothing its inputs); ids without end (spoofed, or damage that passes the
+# checksum) must not grow the service without end, nor its summary.
+MAX_STREAMS = 64
 MAX_MAG = 1000.0  # µT (10 gauss; the Earth's field is 25–65 µT)
 # Without a magnetometer for this long, a stream is reported as 6-D (once).
 MAG_WAIT = 2.0  # s
@@ -327,6 +331,7 @@ class Pipeline:
         # (on_message); a replay's bulk feed sets it as the records it takes would.
         self.record_us = 0
         self._not_followed: set[StreamKey] = set()
+        self._said_full = False  # that MAX_STREAMS streams are followed
         self.ignored_imu: dict[int, int] = {}  # IMU messages from systems not followed
         self._declinations: dict[int, float] = {}  # rad, each system's COMPASS_DEC
         self._autodec: dict[int, bool] = {}  # each system's COMPASS_AUTODEC, when heard
@@ -573,6 +578,16 @@ class Pipeline:
         if wanted.imu not in ("auto", "all") and key.message != wanted.imu:
             return None
         if wanted.imu_instance >= 0 and key.instance != wanted.imu_instance:
+            return None
+        if len(self.streams) + len(self.given_up) >= MAX_STREAMS:
+            if not self._said_full:
+                self._said_full = True
+                log.warning(
+                    "%s: %d IMU streams followed already: this one and any later are not "
+                    "(spoofed ids? --system N follows one vehicle)",
+                    key,
+                    MAX_STREAMS,
+                )
             return None
         better = vehicle.primary is None or (
             (_PREFERENCE[key.message], key.instance)
