@@ -220,6 +220,43 @@ def test_a_udp_peer_that_goes_silent_and_comes_back_is_answered_again(
     assert report.pipeline.streams
 
 
+def test_udp_senders_without_end_are_replied_to_up_to_a_bound(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # 3000 sockets sending one HEARTBEAT each were each sent every reply: the vehicle
+    # got 55 % of its answers, seconds late, and mavest reflected all it sent 3000-fold
+    port = free_port(socket.SOCK_DGRAM)
+    encoder = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    heartbeat = encoder.heartbeat_encode(2, 3, 0, 0, 0).pack(encoder)
+    heard: list[int] = []
+
+    async def scenario() -> None:
+        link = make_link(parse_endpoint(f"udpin:127.0.0.1:{port}"))
+        await link.start(lambda link, data, peer: heard.append(len(data)))
+        senders = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(40)]
+        try:
+            for sender in senders:
+                sender.sendto(heartbeat, ("127.0.0.1", port))
+                sender.setblocking(False)
+            await _until(lambda: len(heard) == 40, 10, "the senders")
+            link.send(heartbeat)
+            await asyncio.sleep(0.2)
+            replied = 0
+            for sender in senders:
+                with contextlib.suppress(BlockingIOError):
+                    replied += len(sender.recv(1024)) > 0
+            assert replied == links.UDP_PEERS_MAX
+        finally:
+            for sender in senders:
+                sender.close()
+            link.close()
+
+    with caplog.at_level("WARNING", logger="mavest"):
+        asyncio.run(scenario())
+    said = [r.getMessage() for r in caplog.records if "peers replied to already" in r.getMessage()]
+    assert len(said) == 1
+
+
 def _service_log(service: ServiceProcess) -> str:
     text = "".join(service.log)
     assert "Traceback" not in text, text

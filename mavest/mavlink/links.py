@@ -14,7 +14,7 @@ Every link hands received bytes, with the peer they came from, to one callback;
 the pipeline finds the packets in them (a byte stream's per peer, so that streams
 from different peers never interleave inside a packet). A UDP sender becomes a
 peer, sent every reply, only once a datagram of its holds a MAVLink packet whose
-CRC checks. Sending never blocks: a
+CRC checks, and while fewer than :data:`UDP_PEERS_MAX` are. Sending never blocks: a
 link that cannot send right now (no peer yet, TCP reconnecting, a TCP peer that
 leaves :data:`TCP_BACKLOG` bytes unread) drops the packet.
 """
@@ -43,6 +43,10 @@ Receiver = Callable[["Link", bytes, Any], None]
 UDP_PEER_TIMEOUT = 30.0  # s: a udpin peer silent this long gets no more replies
 # udpin peers gone silent remembered (to say when one is back): the latest this many
 SILENT_PEERS_KEPT = 256
+# udpin peers replied to at once, at most: each is sent every reply, so that senders
+# without end (a flood from many sockets, spoofed source addresses) would make the
+# service a reflector and starve the vehicle it serves
+UDP_PEERS_MAX = 32
 TCP_MIN_BACKOFF = 0.25  # s: the first wait before connecting again
 
 
@@ -176,6 +180,7 @@ class UdpLink(Link):
         self._transport: asyncio.DatagramTransport | None = None
         self._peers: dict[Any, float] = {}  # udpin: who to reply to → when last heard
         self._silent: dict[Any, float] = {}  # peers dropped for silence → when last heard
+        self._said_full = False  # that UDP_PEERS_MAX peers are replied to (said once)
         self._warned_unreachable = False
         # udpbcast: where packets go (the broadcast address, then the peer that answered)
         self._destination: Any = (endpoint.host, endpoint.port)
@@ -215,6 +220,16 @@ class UdpLink(Link):
             now = time.monotonic()
             if addr in self._peers:
                 self._peers[addr] = now
+            elif len(self._peers) >= UDP_PEERS_MAX:
+                if not self._said_full and _holds_mavlink(data):
+                    self._said_full = True
+                    log.warning(
+                        "%s: %d peers replied to already: %s and any later are not, until "
+                        "one falls silent (what they send is still read)",
+                        self.endpoint,
+                        UDP_PEERS_MAX,
+                        _address(addr),
+                    )
             elif _holds_mavlink(data):
                 self._on_new_peer(addr, now)
                 self._peers[addr] = now
