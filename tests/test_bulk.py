@@ -978,9 +978,12 @@ def test_a_time_no_clock_reads_is_a_rejected_sample(
         report = asyncio.run(replay(path, config, Outputs(rrd=tmp_path / "o.rrd"), fast=fast))
     (stream,) = report.streams
     assert stream.stats.estimated == 0 and stream.stats.rejected == 400
+    # (the start of the line: a run's repeat limiter may add a count of held lines)
     said = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
-    assert said == [f"{stream.key}: sample rejected, its time beyond 9e+09 s (285 years): "
-                    "no clock's (all such are counted as rejected)"]  # fmt: skip
+    assert len(said) == 1 and said[0].startswith(
+        f"{stream.key}: sample rejected, its time beyond 9e+09 s (285 years): no clock's "
+        "(all such are counted as rejected)"
+    )
 
 
 @pytest.mark.parametrize("fast", [True, False], ids=["bulk", "one-by-one"])

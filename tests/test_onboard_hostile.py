@@ -285,10 +285,10 @@ def test_a_jump_of_an_onboard_logs_clock_is_said_in_the_logs_terms(
         asyncio.run(replay(path, ServiceConfig()))
     said = [r.getMessage() for r in caplog.records if "clock jumped" in r.getMessage()]
     last = (START_US + 999 * STEP_US) * 1e-6
-    assert said == [
+    assert len(said) == 1 and said[0].startswith(  # (a count of held lines may follow)
         f"jump.bin: the log's clock jumped forward by 12.7 days at {last:.3f} s of its time; "
         "read on at the new time"
-    ]
+    )
 
 
 def test_an_accelerometer_that_never_reads_g_is_said_and_nothing_is_scored(
