@@ -25,14 +25,13 @@ import asyncio
 import contextlib
 import dataclasses
 import io
-import itertools
 import logging
 import math
 import os
 import sys
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn, Protocol
 
@@ -646,20 +645,27 @@ def _estimate_table(args: argparse.Namespace) -> int:
     # (flags as the estimates table's: 64-bit integers)
     flags = out.flags.astype(np.int64)
     columns = [out.t, *out.q.T, *euler.T, *np.degrees(out.bias).T, *sigma.T, flags]
-    # the CSV made as it is written, a piece at a time (as the estimates table's)
-    header = (",".join(ESTIMATE_COLUMNS) + "\n").encode()
-    text = itertools.chain([header], (data for data, _ in csv_rows(columns)))
     if args.output is None:
-        for piece in text:
+        for piece in _csv_pieces(columns):
             _say(piece.decode(), end="")
     else:
         try:
-            write_atomically(args.output, _parquet_bytes(columns) if parquet else text)
+            write_atomically(
+                args.output, _parquet_bytes(columns) if parquet else _csv_pieces(columns)
+            )
         except OSError as error:
             raise UsageError(f"cannot write {args.output}: {error.strerror}") from None
     for line in _flag_summary(out.flags, table[:, 0], table[:, 1:4], config):
         log.warning("%s: %s", args.input, line)
     return 0
+
+
+def _csv_pieces(columns: list[np.ndarray]) -> Iterator[bytes]:
+    """`estimate`'s table as CSV, made as it is written, a piece at a time (as the
+    estimates table's)."""
+    yield (",".join(ESTIMATE_COLUMNS) + "\n").encode()
+    for data, _ in csv_rows(columns):
+        yield data
 
 
 def _parquet_bytes(columns: list[np.ndarray]) -> bytes:
@@ -671,7 +677,7 @@ def _parquet_bytes(columns: list[np.ndarray]) -> bytes:
     table = pa.table(dict(zip(ESTIMATE_COLUMNS, columns, strict=True)))
     sink = pa.BufferOutputStream()
     pq.write_table(table, sink)
-    return bytes(sink.getvalue().to_pybytes())
+    return sink.getvalue().to_pybytes()
 
 
 # The flags `estimate` counts after its run, besides the samples it skipped: each is an

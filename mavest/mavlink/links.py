@@ -370,7 +370,7 @@ class TcpClientLink(Link):
         writer = self._writer
         if writer is None or writer.is_closing():
             return
-        _write_or_drop(writer, packet, self._dropping, self.endpoint, "the peer")
+        _write_or_drop(writer, packet, self._dropping, self.endpoint)
 
     def close(self) -> None:
         if self._task is not None:
@@ -390,7 +390,6 @@ def _write_or_drop(
     packet: bytes,
     dropping: set[asyncio.StreamWriter],
     endpoint: Any,
-    who: str,
 ) -> None:
     """Send, unless ``TCP_BACKLOG`` bytes already wait for this peer: then drop, as a
     link that cannot send does, said once while it lasts (``dropping``: the peers it
@@ -399,16 +398,21 @@ def _write_or_drop(
     if waiting < TCP_BACKLOG:
         if writer in dropping:
             dropping.discard(writer)
-            log.info("%s: %s reads again: sending to it again", endpoint, who)
+            log.info("%s: %s reads again: sending to it again", endpoint, _peer_of(writer))
         writer.write(packet)
     elif writer not in dropping:
         dropping.add(writer)
         log.warning(
             "%s: %s does not read what is sent (%d kB wait): dropping packets to it until it does",
             endpoint,
-            who,
+            _peer_of(writer),
             waiting // 1024,
         )
+
+
+def _peer_of(writer: asyncio.StreamWriter) -> str:
+    """The TCP peer of a connection, for the log (only when a line is said)."""
+    return f"peer {_address(writer.get_extra_info('peername'))}"
 
 
 class TcpServerLink(Link):
@@ -447,8 +451,7 @@ class TcpServerLink(Link):
     def send(self, packet: bytes) -> None:
         for writer in list(self._clients):
             if not writer.is_closing():
-                peer = writer.get_extra_info("peername")
-                _write_or_drop(writer, packet, self._dropping, self.endpoint, f"client {peer}")
+                _write_or_drop(writer, packet, self._dropping, self.endpoint)
 
     def close(self) -> None:
         for writer in list(self._clients):

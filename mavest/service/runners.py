@@ -536,8 +536,7 @@ async def _smooth(report: RunReport, opened: _Opened, stop: asyncio.Event | None
         report.smoothing_skipped = "smoothing skipped: the replay was interrupted"
         log.warning("%s", report.smoothing_skipped)
         return
-    smoothed: dict[StreamKey, Stream] = {}
-    results: dict[StreamKey, SmoothedStream] = {}
+    done: list[tuple[Stream, SmoothedStream]] = []
     for stream in report.pipeline.every_stream:
         result = await _unless_stopped(functools.partial(smooth_stream, stream), stop)
         if stop is not None and stop.is_set():
@@ -546,10 +545,10 @@ async def _smooth(report: RunReport, opened: _Opened, stop: asyncio.Event | None
             log.warning("%s", report.smoothing_skipped)
             return
         if result is not None:
-            smoothed[stream.key], results[stream.key] = stream, result
-    for key, result in results.items():
-        report.smoothed[key] = result
-        opened.on_smoothed(smoothed[key], result)
+            done.append((stream, result))
+    for stream, result in done:
+        report.smoothed[stream.key] = result
+        opened.on_smoothed(stream, result)
 
 
 _T = TypeVar("_T")
