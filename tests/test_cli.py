@@ -200,6 +200,57 @@ def test_the_command_loads_without_the_collector_and_runs_with_it() -> None:
     assert int(frozen) > 100_000
 
 
+# The command run as its entry point does, with an exit handler of the kind Rerun and
+# logging register (here: one line on standard error, after standard output's line)
+# and, if asked, a thread of the program's own still at work when the command is done.
+_COMMAND_WITH_A_HANDLER = """
+import atexit, sys, threading, time
+from pathlib import Path
+atexit.register(lambda: print("handler ran", file=sys.stderr))
+if len(sys.argv) > 2:
+    mark = Path(sys.argv[2])
+    def late() -> None:
+        time.sleep(0.3)
+        mark.write_text("the thread finished")
+    threading.Thread(target=late).start()
+sys.argv = ["mavest", *sys.argv[1].split()]
+from mavest.launch import command
+command()
+"""
+
+
+@pytest.mark.parametrize(
+    ("arguments", "code"), [("--version", 0), ("replay /nonexistent/flight.tlog", 2)]
+)
+def test_the_command_leaves_with_its_status_after_the_exit_handlers(
+    arguments: str, code: int
+) -> None:
+    done = subprocess.run(
+        [sys.executable, "-c", _COMMAND_WITH_A_HANDLER, arguments],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == code, done.stderr
+    assert done.stderr.splitlines()[-1] == "handler ran"
+    if code == 0:  # (standard output, a pipe here, written out before leaving)
+        assert done.stdout == f"mavest {__version__}\n"
+
+
+def test_the_command_waits_for_a_thread_still_at_work(tmp_path: Path) -> None:
+    """With a thread of the program still running, the interpreter's own exit, which
+    waits for it, rather than the quick one."""
+    mark = tmp_path / "thread.txt"
+    done = subprocess.run(
+        [sys.executable, "-c", _COMMAND_WITH_A_HANDLER, "--version", str(mark)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert (done.returncode, done.stderr.splitlines()[-1]) == (0, "handler ran")
+    assert mark.read_text() == "the thread finished"
+
+
 def test_python_dash_m_mavest_is_the_command(tmp_path: Path) -> None:
     done = subprocess.run([*MAVEST, "--version"], capture_output=True, text=True, check=False)
     assert (done.returncode, done.stdout.strip()) == (0, f"mavest {__version__}")

@@ -28,7 +28,14 @@ EXEMPT_MODULES = {
 }
 
 # (module, name): a module touching an underscore name of an object it does not own.
-ALLOWED: dict[tuple[str, str], str] = {}
+ALLOWED: dict[tuple[str, str], str] = {
+    ("mavest/launch.py", "_exit"): "os._exit, Python's documented exit without teardown",
+    ("mavest/launch.py", "_run_exitfuncs"): (
+        "atexit's runner of the exit handlers, which has no public name: run before "
+        "os._exit so that Rerun's and logging's still flush; looked up, and where it is "
+        "absent the interpreter's own exit"
+    ),
+}
 
 
 def _is_private(name: str) -> bool:
@@ -120,11 +127,13 @@ def trespasses(source: str, relative: Path) -> list[str]:
     return sorted(found, key=lambda finding: int(finding.split(":")[0]))
 
 
+def _names(finding: str, name: str) -> bool:
+    """Whether a finding is a reach for ``name`` (as an attribute, an import, a string)."""
+    return f".{name}" in finding or f"import {name}" in finding or f"'{name}'" in finding
+
+
 def _allowed(relative: str, finding: str) -> bool:
-    return any(
-        module == relative and (f".{name}" in finding or f"import {name}" in finding)
-        for module, name in ALLOWED
-    )
+    return any(module == relative and _names(finding, name) for module, name in ALLOWED)
 
 
 def test_no_module_touches_another_modules_underscore_names() -> None:
@@ -145,7 +154,7 @@ def test_every_exception_is_still_needed() -> None:
         assert (PACKAGE.parent / module).exists(), module
     for module, name in ALLOWED:
         findings = trespasses((PACKAGE.parent / module).read_text(), Path(module))
-        assert any(f".{name}" in f or f"import {name}" in f for f in findings), (module, name)
+        assert any(_names(f, name) for f in findings), (module, name)
 
 
 def test_the_scan_sees_each_kind_of_reach() -> None:
