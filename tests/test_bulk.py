@@ -130,6 +130,14 @@ def turning_flights(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]
         ("ardupilot", "ardupilot.toml", {"input": {"acceleration_aiding": "airspeed"}}),
         ("ardupilot", "ardupilot.toml", {"input": {"acceleration_aiding": "off"}}),
         ("ardupilot", "ardupilot.toml", {"output": {"heartbeat_rate": 0.0}}),
+        # our HEARTBEATs take sequence numbers among the answers packed at once: more
+        # of them than answers, and from a system of our own
+        (
+            "ardupilot",
+            "ardupilot.toml",
+            {"output": {"heartbeat_rate": 50.0, "attitude_rate": 20.0}},
+        ),
+        ("ardupilot", "ardupilot.toml", {"output": {"system_id": 250}}),
         ("px4", "px4.toml", {}),
     ],
 )

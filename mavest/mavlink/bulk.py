@@ -196,11 +196,13 @@ def attitude_packets(
     component: int,
     first_seq: int,
     mavlink1: np.ndarray | None = None,
+    skips: np.ndarray | None = None,
 ) -> tuple[Packets, Packets | None]:
     """ATTITUDE (and ATTITUDE_QUATERNION if ``q`` is given) for each row.
 
     Sequence numbers go on from ``first_seq`` as the encoder hands them out:
-    ATTITUDE then ATTITUDE_QUATERNION per sample, or ATTITUDE alone. MAVLink 2
+    ATTITUDE then ATTITUDE_QUATERNION per sample, or ATTITUDE alone, row i's
+    ``skips[i]`` further on (the packets of others sent before it). MAVLink 2
     packets, or MAVLink 1 for the rows where ``mavlink1`` is set.
     """
     n = time_boot_ms.shape[0]
@@ -214,6 +216,8 @@ def attitude_packets(
     for k, name in enumerate(("rollspeed", "pitchspeed", "yawspeed")):
         attitude[name] = rates[:, k]
     seqs = first_seq + step * np.arange(n, dtype=np.int64)
+    if skips is not None:
+        seqs += skips
     first = _packed(attitude, _ATTITUDE, mavlink1, system, component, seqs)
     if q is None:
         return first, None

@@ -277,6 +277,11 @@ class Encoder:
         self.take_sequence()
         return packet
 
+    @property
+    def sequence(self) -> int:
+        """The sequence number the next packet takes."""
+        return int(self._mav.seq)
+
     def take_sequence(self, count: int = 1) -> int:
         """The sequence number of the next packet, for ``count`` packets packed elsewhere
         (they take it and the ones after it, modulo 256: a replay packs its answers in

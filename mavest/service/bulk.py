@@ -246,6 +246,8 @@ class _Decoded:
             self.attitude[rows] = bulk.simstate_euler(payloads)  # (its roll, pitch, yaw)
 
 
+_NO_PACKETS = framing.Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
+
 # What the pipeline does with an IMU record, by its stream.
 _ESTIMATED = 0  # the stream estimated in bulk
 _PASSED_BY = 1  # a stream not followed (or a HIGHRES_IMU without fresh data): nothing
@@ -724,13 +726,19 @@ class BulkFeed:
         # Packets sent are recorded at the time of the last decoded message before them.
         decoded_rows = start + np.flatnonzero(kind != PASSIVE)
         beats = [start + beat + 1 for beat in self._beats(records.stamp[start:stop])]
+        answers = None  # packed for the whole stretch at once, written piece by piece
+        if stream is not None and steps is not None and answered.shape[0] and self.tlog is not None:
+            answers = self._answers(records, stream, steps, answered, beats)
         piece_start = start
         for piece_end in beats if beats and beats[-1] == stop else [*beats, stop]:
             first, last = np.searchsorted(answered_rows, (piece_start, piece_end))
-            if stream is not None and steps is not None:
-                self._write(records, piece_start, piece_end, stream, steps, answered[first:last])
-            elif self.tlog is not None:
-                self._write_records(records, piece_start, piece_end)
+            if last > first:
+                assert stream is not None
+                self._answered(stream, int(last - first))
+            if self.tlog is not None:
+                self._write(
+                    records, piece_start, piece_end, answered_rows[first:last], answers, first, last
+                )
             last_decoded = int(np.searchsorted(decoded_rows, piece_end)) - 1
             pipeline.record_us = (
                 int(records.stamp[decoded_rows[last_decoded]])
@@ -748,34 +756,25 @@ class BulkFeed:
         records: framing.RecordIndex,
         start: int,
         stop: int,
-        stream: Stream,
-        steps: _Steps,
-        answered: np.ndarray,
+        answered_rows: np.ndarray,
+        answers: tuple[framing.Packets, framing.Packets | None] | None,
+        first: int,
+        last: int,
     ) -> None:
-        """Records [start, stop) to the output tlog, each answered step's (``answered``:
-        their indices, in order) followed by its answers, packed now (the encoder's
-        sequence numbers go on)."""
-        if not answered.shape[0]:
-            if self.tlog is not None:
-                self._write_records(records, start, stop)
-            return
-        answers = self._answers(records, stream, steps, answered)
-        if self.tlog is None:
-            return
-        answer_of = np.full(stop - start, -1, dtype=np.int64)
-        answer_of[steps.rows[answered] - start] = np.arange(answered.shape[0])
-        data, ends = bulk.interleave(
-            self.data, records.part(slice(start, stop)), answer_of, *answers
-        )
-        self.tlog.write_records(data, ends)
-
-    def _write_records(self, records: framing.RecordIndex, start: int, stop: int) -> None:
-        """Records [start, stop) to the output tlog as they are (nothing answered)."""
+        """Records [start, stop) to the output tlog, each of ``answered_rows`` followed by
+        its answers: rows ``first`` to ``last`` of ``answers``."""
         assert self.tlog is not None
-        empty = framing.Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
         answer_of = np.full(stop - start, -1, dtype=np.int64)
+        if answers is None or last == first:
+            packets = (_NO_PACKETS, None)
+        else:
+            answer_of[answered_rows - start] = np.arange(last - first)
+            packets = tuple(
+                None if p is None else framing.Packets(p.data[first:last], p.length[first:last])
+                for p in answers
+            )
         data, ends = bulk.interleave(
-            self.data, records.part(slice(start, stop)), answer_of, empty, None
+            self.data, records.part(slice(start, stop)), answer_of, *packets
         )
         self.tlog.write_records(data, ends)
 
@@ -1010,31 +1009,55 @@ class BulkFeed:
         return truth_t
 
     def _answers(
-        self, records: framing.RecordIndex, stream: Stream, steps: _Steps, answered: np.ndarray
+        self,
+        records: framing.RecordIndex,
+        stream: Stream,
+        steps: _Steps,
+        answered: np.ndarray,
+        beats: list[int],
     ) -> tuple[framing.Packets, framing.Packets | None]:
-        """ATTITUDE (and ATTITUDE_QUATERNION) for the answered samples, as
-        the pipeline packs them, with the encoder's sequence numbers, each in the
-        MAVLink version its sample came in."""
-        pipeline = self.pipeline
+        """ATTITUDE (and ATTITUDE_QUATERNION) for the answered samples, as the pipeline
+        packs them, each in the MAVLink version its sample came in, with the encoder's
+        sequence numbers from its next one. ``beats``: where the pieces after which a
+        HEARTBEAT of ours goes out end; each HEARTBEAT takes one number between the
+        answers. The encoder hands the numbers out as they are written
+        (:meth:`_answered`)."""
+        rows = steps.rows[answered]
+        answered = _as_slice(answered)  # (nearly always all: a view of each)
         q = steps.q[answered]
         rates = steps.gyro[answered] - steps.bias[answered]
         stamps = time_boot_ms_many(steps.t[answered])
-        encoder = pipeline.encoder(stream.key.system)
-        with_quaternion = pipeline.config.output.attitude_quaternion
-        sent = answered.shape[0] * (2 if with_quaternion else 1)
-        packets = bulk.attitude_packets(
+        encoder = self.pipeline.encoder(stream.key.system)
+        with_quaternion = self.pipeline.config.output.attitude_quaternion
+        return bulk.attitude_packets(
             stamps,
             steps.euler[answered],
             rates,
             q if with_quaternion else None,
             encoder.system,
             encoder.component,
-            encoder.take_sequence(sent),
-            self.data[records.start[steps.rows[answered]] + 8] == mavlink2.PROTOCOL_MARKER_V1,
+            encoder.sequence,
+            self.data[records.start[rows] + 8] == mavlink2.PROTOCOL_MARKER_V1,
+            skips=np.searchsorted(beats, rows, side="right"),
         )
+
+    def _answered(self, stream: Stream, count: int) -> None:
+        """``count`` samples' answers sent: the encoder's sequence numbers they take,
+        and the counts."""
+        pipeline = self.pipeline
+        sent = count * (2 if pipeline.config.output.attitude_quaternion else 1)
+        pipeline.encoder(stream.key.system).take_sequence(sent)
         pipeline.sent += sent
-        stream.stats.answered += answered.shape[0]
-        return packets
+        stream.stats.answered += count
+
+
+def _as_slice(index: np.ndarray) -> slice | np.ndarray:
+    """Ascending distinct indices, as a slice where they are consecutive (which takes a
+    view rather than a copy), else as they are."""
+    n = index.shape[0]
+    if n and int(index[-1]) - int(index[0]) == n - 1:
+        return slice(int(index[0]), int(index[-1]) + 1)
+    return index
 
 
 def _distinct(values: np.ndarray) -> list[int]:
