@@ -86,14 +86,16 @@ def wire_dtype(message_class: Any) -> np.dtype:
 
 @inplace_exact_kernel
 def _gather(data: np.ndarray, payload: np.ndarray, length: np.ndarray, out: np.ndarray) -> None:
-    width = out.shape[1]
+    # (unsigned indices, as _interleave's copies)
+    width = np.uint64(out.shape[1])
     for i in range(payload.shape[0]):
-        used = min(length[i], width)
-        start = payload[i]
+        row = out[i]
+        used = min(np.uint64(length[i]), width)
+        start = np.uint64(payload[i])
         for k in range(used):
-            out[i, k] = data[start + k]
+            row[k] = data[start + k]
         for k in range(used, width):
-            out[i, k] = 0
+            row[k] = 0
 
 
 def decode_payloads(data: np.ndarray, records: RecordIndex, dtype: np.dtype) -> np.ndarray:
@@ -269,13 +271,17 @@ def _interleave(
     out: np.ndarray,
     out_ends: np.ndarray,
 ) -> int:
-    """Copy each input record; after one answered, its packets as records of its time."""
-    position = 0
+    """Copy each input record; after one answered, its packets as records of its time.
+
+    The copies index with unsigned integers: a signed index may count from the end,
+    and the test for that kept LLVM from vectorising them (2.6 times slower)."""
+    position = np.uint64(0)
     records = 0
     for i in range(start.shape[0]):
-        for k in range(start[i], end[i]):
-            out[position] = data[k]
-            position += 1
+        first = np.uint64(start[i])
+        for k in range(np.uint64(end[i]) - first):
+            out[position + k] = data[first + k]
+        position += np.uint64(end[i]) - first
         out_ends[records] = position
         records += 1
         a = answer_of[i]
@@ -286,11 +292,12 @@ def _interleave(
                 continue
             s = stamp[i]
             for k in range(8):
-                out[position + k] = (s >> (8 * (7 - k))) & 0xFF
-            position += 8
-            for k in range(lengths[a]):
-                out[position + k] = packets[a, k]
-            position += lengths[a]
+                out[position + np.uint64(k)] = (s >> (8 * (7 - k))) & 0xFF
+            position += np.uint64(8)
+            row = packets[a]
+            for k in range(np.uint64(lengths[a])):
+                out[position + k] = row[k]
+            position += np.uint64(lengths[a])
             out_ends[records] = position
             records += 1
     return records
