@@ -127,13 +127,15 @@ _IMU_DTYPES = {
 
 # Samples per part of a batch: the filter runs one part on its thread while the
 # replay takes the part before (books, compares, packs and writes it). The first part
-# is smaller, as the replay waits for it; each after it twice the one before, up to
-# _PART. Each part costs the replay over half a millisecond whatever its size, so
-# parts are large: past start-up, a 300 s 1 kHz tlog (tools/replay_split.py's)
-# replays in 0.36 s so, in 0.38 s with 8192 throughout, 0.40 s with 2048 and 0.53 s
-# with 1024. With sinks (a recording), at most about a second of the stream's
-# samples: they take the estimates a part at a time, and the recording's disk is
-# checked after each.
+# is smaller, as the replay waits for it; each after it half as large again as the
+# one before, up to _PART: the replay takes a part in about one and a half times the
+# filter's time for as many samples, so the next part is ready about when the replay
+# wants it (parts twice the one before kept it waiting 34 ms over a 300 s 1 kHz tlog,
+# tools/replay_split.py's; 20 ms so, nearly all of it for first parts). Each part
+# costs the replay over half a millisecond whatever its size, so parts are large:
+# 1024 samples first made that replay 35 ms slower. With sinks (a recording), at most
+# about a second of the stream's samples: they take the estimates a part at a time,
+# and the recording's disk is checked after each.
 _FIRST_PART = 2048
 _PART = 8192
 _PART_SECONDS = 1.0
@@ -529,7 +531,7 @@ class BulkFeed:
                 stream.inputs.add_many(*(x[first:done] for x in inputs), series.flags[:count])
             ended = cut or done == plain_count
             if not ended:
-                size = min(2 * size, most)
+                size = min(size * 3 // 2, most)
                 inputs_after = _part(inputs, done, size, plain_count)
                 part = worker.submit(self._update, stream, *inputs_after)
             stream.clock.take_run(ticks[first:], tick, count)
