@@ -23,6 +23,7 @@ import pytest
 from pymavlink.dialects.v10 import ardupilotmega as mavlink1
 from test_hostile_input import CASES, Flight, _message_id, _repacked, _tlog_bytes, clean_flights
 
+from mavest.estimator.config import STANDARD_GRAVITY
 from mavest.evaluation.online import ESTIMATE, REFERENCE, EulerComparison
 from mavest.mavlink import bulk, framing
 from mavest.mavlink.clock import WRAP_TICKS, ClockEvent, StreamClock
@@ -992,6 +993,36 @@ def test_a_time_no_clock_reads_is_a_rejected_sample(
         f"{stream.key}: sample rejected, its time beyond 9e+09 s (285 years): no clock's "
         "(all such are counted as rejected)"
     )
+
+
+@pytest.mark.parametrize("fast", [True, False], ids=["bulk", "one-by-one"])
+@pytest.mark.parametrize(("one_g", "unit"), [(1000.0, "mg"), (9806.65, "mm/s²")])
+def test_an_accelerometer_in_another_unit_is_named(
+    tmp_path: Path, fast: bool, one_g: float, unit: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """HIGHRES_IMU is in m/s²: a sender's accelerometer in mg or mm/s² reads 1000 or 9807
+    at rest, beyond any sensor's range, and the line rejecting it names the unit."""
+    encoder = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    path = tmp_path / "highres.tlog"
+    writer = TlogWriter(path)
+    rng = np.random.default_rng(5)
+    for k in range(400):
+        accel = np.array([0.0, 0.0, -one_g]) + rng.normal(0.0, 0.02 * one_g, 3)
+        packet = encoder.highres_imu_encode(
+            5000 * k, *accel, 0.01, -0.02, 0.03, 0.2, 0.0, 0.4, 1000.0, 0.0, 0.0, 20.0, 0x1FFF
+        )
+        writer.write(1_700_000_000_000_000 + 5000 * k, packet.pack(encoder))
+    writer.close()
+    with caplog.at_level("WARNING", logger="mavest"):
+        config = ServiceConfig().replace(input={"imu": "HIGHRES_IMU"})
+        report = asyncio.run(replay(path, config, Outputs(), fast=fast))
+    (stream,) = report.streams
+    assert stream.stats.estimated == 0 and stream.stats.rejected == 400
+    said = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith(
+        f"{stream.key}: sample rejected, accelerometer beyond any sensor's range: looks "
+        f"like {unit}, mavest wants m/s² (multiply by {STANDARD_GRAVITY / one_g:.6g})"
+    ), said
 
 
 @pytest.mark.parametrize("fast", [True, False], ids=["bulk", "one-by-one"])

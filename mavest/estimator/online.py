@@ -59,7 +59,7 @@ from mavest.estimator.layout import (
     StepFlags,
 )
 from mavest.estimator.linalg import copy_into
-from mavest.estimator.recursion import ACCEL_UNITS, step
+from mavest.estimator.recursion import ACCEL_UNITS, accel_unit_of, step
 
 # Rows per output block: a block is shared by the estimates made from it and freed with
 # the last of them, so it is small (21 KiB) for callers that keep a few estimates.
@@ -87,6 +87,14 @@ def accel_unit_message(state: np.ndarray) -> str:
         f"accelerometer norm ≈ {norm:.4g}: looks like {name}, mavest wants m/s²"
         f" (multiply by {scale:.6g})"
     )
+
+
+def accel_unit_named(norm: float, gravity: float) -> tuple[str, float] | None:
+    """The unit (its name, m/s² per unit) in which an accelerometer's ``norm`` is one g
+    (``gravity``), if it is in one of ACCEL_UNITS: the step's rule, run as Python (for a
+    sample the service rejects, which the step never sees; no compiling for it)."""
+    k = getattr(accel_unit_of, "py_func", accel_unit_of)(norm, gravity)
+    return ACCEL_UNITS[k] if k >= 0 else None
 
 
 def warn_accel_unit(state: np.ndarray, stacklevel: int) -> None:

@@ -175,6 +175,17 @@ def _initialise(
 
 
 @inplace_kernel
+def accel_unit_of(norm: float, gravity: float) -> int:
+    """The index in ACCEL_UNITS of the unit in which an accelerometer's ``norm`` is one
+    g (``gravity``, m/s²), within the tolerance; −1 for none (the units are 10³ apart:
+    at most one is)."""
+    for k in range(len(_UNIT_SCALES)):
+        if abs(norm * _UNIT_SCALES[k] - gravity) <= _UNIT_TOLERANCE * gravity:
+            return k
+    return -1
+
+
+@inplace_kernel
 def _judge_accel_unit(s: StateRecord, c: CoefficientsRecord, t: float, accel: np.ndarray) -> bool:
     """Take a sample that did not align, before any did, into the verdict on the
     accelerometer's unit (ACCEL_UNITS); whether it is in one of those."""
@@ -186,10 +197,10 @@ def _judge_accel_unit(s: StateRecord, c: CoefficientsRecord, t: float, accel: np
     if s.unit_samples == 0:
         s.unit_t0 = t
     s.unit_samples += 1
-    for k in range(len(_UNIT_SCALES)):
-        if abs(norm * _UNIT_SCALES[k] - c.gravity) <= _UNIT_TOLERANCE * c.gravity:
-            s.unit_votes[k] += 1
-            s.unit_norm_sum[k] += norm
+    k = accel_unit_of(norm, c.gravity)
+    if k >= 0:
+        s.unit_votes[k] += 1
+        s.unit_norm_sum[k] += norm
     if s.unit_samples < _UNIT_MIN_SAMPLES or not t - s.unit_t0 >= _UNIT_WINDOW:
         return False
     s.accel_unit = -1

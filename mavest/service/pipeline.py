@@ -65,8 +65,9 @@ from typing import Any, NamedTuple, Protocol
 import numpy as np
 
 from mavest.estimator import Estimator
-from mavest.estimator.config import MAX_ANGULAR_RATE, MAX_SPECIFIC_FORCE
+from mavest.estimator.config import MAX_ANGULAR_RATE, MAX_SPECIFIC_FORCE, STANDARD_GRAVITY
 from mavest.estimator.layout import StepFlags
+from mavest.estimator.online import accel_unit_named
 from mavest.evaluation.online import EulerComparison
 from mavest.mavlink import framing, wire
 from mavest.mavlink.clock import ClockEvent, StreamClock
@@ -1345,6 +1346,16 @@ def _rejection_reason(sample: ImuSample) -> str:
         return "accelerometer all zero: no sensor data"
     if sample.ticks * sample.tick >= MAX_TIME:
         return f"its time beyond {MAX_TIME:.3g} s (285 years): no clock's"
+    if within(sample.gyro, MAX_GYRO):
+        # one g in another unit, as a vehicle at rest (as logs begin) gives it: the
+        # estimator's rule for telling the unit, which it never sees such a sample for
+        unit = accel_unit_named(math.hypot(*sample.accel), STANDARD_GRAVITY)
+        if unit is not None:
+            name, scale = unit
+            return (
+                f"accelerometer beyond any sensor's range: looks like {name}, mavest wants "
+                f"m/s² (multiply by {scale:.6g})"
+            )
     return "beyond any sensor's range"
 
 
