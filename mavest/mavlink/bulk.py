@@ -29,7 +29,7 @@ import numpy as np
 
 from mavest import so3
 from mavest._jit import inplace_exact_kernel
-from mavest.mavlink.framing import Packets, RecordIndex, pack_rows
+from mavest.mavlink.framing import NO_PACKETS, Packets, RecordIndex, pack_rows
 from mavest.mavlink.messages import (
     HIGHRES_INERTIAL_BITS,
     HIGHRES_MAG_BITS,
@@ -316,7 +316,7 @@ def interleave(
     answered = int((answer_of >= 0).sum())
     per_answer = 1 if second is None else 2
     if second is None:
-        second = Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
+        second = NO_PACKETS
     size = int((records.end - records.start).sum()) + answered * 8 * per_answer
     size += int(first.length[answer_of[answer_of >= 0]].sum())
     size += int(second.length[answer_of[answer_of >= 0]].sum()) if per_answer == 2 else 0

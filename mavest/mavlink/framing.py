@@ -371,6 +371,12 @@ class Packets(NamedTuple):
     data: np.ndarray  # (n, capacity) uint8
     length: np.ndarray  # (n,) int64
 
+    def part(self, selection: Any) -> Packets:
+        return Packets(self.data[selection], self.length[selection])
+
+
+NO_PACKETS = Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
+
 
 def pack_rows(
     payloads: np.ndarray,

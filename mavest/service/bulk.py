@@ -248,8 +248,6 @@ class _Decoded:
             self.attitude[rows] = bulk.simstate_euler(payloads)  # (its roll, pitch, yaw)
 
 
-_NO_PACKETS = framing.Packets(np.empty((0, 1), dtype=np.uint8), np.empty(0, dtype=np.int64))
-
 # What the pipeline does with an IMU record, by its stream.
 _ESTIMATED = 0  # the stream estimated in bulk
 _PASSED_BY = 1  # a stream not followed (or a HIGHRES_IMU without fresh data): nothing
@@ -768,13 +766,10 @@ class BulkFeed:
         assert self.tlog is not None
         answer_of = np.full(stop - start, -1, dtype=np.int64)
         if answers is None or last == first:
-            packets = (_NO_PACKETS, None)
+            packets = (framing.NO_PACKETS, None)
         else:
             answer_of[answered_rows - start] = np.arange(last - first)
-            packets = tuple(
-                None if p is None else framing.Packets(p.data[first:last], p.length[first:last])
-                for p in answers
-            )
+            packets = tuple(None if p is None else p.part(slice(first, last)) for p in answers)
         data, ends = bulk.interleave(
             self.data, records.part(slice(start, stop)), answer_of, *packets
         )
@@ -814,9 +809,7 @@ class BulkFeed:
         truth_t = np.empty(0)
         if stream is not None:
             scored = (
-                answerable(steps.series.flags[index])
-                if steps is not None
-                else np.empty(0, dtype=bool)
+                answerable(steps.flags[index]) if steps is not None else np.empty(0, dtype=bool)
             )
             truth_t = self._compare(
                 stream, decoded, t, euler, rows, scored, truth_rows, last_t_before, autopilot
