@@ -354,6 +354,15 @@ def _quat_exp_components_into(
 
 
 @kernel
+def quat_times_exp_into(q: np.ndarray, px: float, py: float, pz: float, out: np.ndarray) -> None:
+    """q ⊗ Exp(φ), φ = (px, py, pz): q turned by φ about its own (body) axes. ``out`` may
+    not alias q."""
+    theta = math.sqrt(px * px + py * py + pz * pz)
+    k = 0.5 * sinc(0.5 * theta)
+    _quat_product_into(q[0], q[1], q[2], q[3], math.cos(0.5 * theta), k * px, k * py, k * pz, out)
+
+
+@kernel
 def quat_exp(phi: np.ndarray) -> np.ndarray:
     out = np.empty(4)
     quat_exp_into(phi, out)

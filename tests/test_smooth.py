@@ -806,16 +806,24 @@ def test_known_acceleration_reaches_both_passes() -> None:
 
 def test_averaging_time_is_chosen_on_one_half_and_reported_on_the_other() -> None:
     """tools/tune_smooth.py: the choice is the tuning half's best mean, and the row
-    reports the other half only, with the paired per-trial differences."""
+    reports the other half only, with the paired per-trial differences, against the
+    peer as it is and carried forward by the same delay."""
     from mavest.datasets.broad import halves
     from mavest.evaluation.report import paired
 
     tool = load_tool("tune_smooth")
-    table = {0.0: [1.0, 2.0, 3.0, 4.0], 0.25: [0.9, 2.5, 2.9, 4.5], 0.5: [1.1, 1.5, 3.1, 3.5]}
+    table = {
+        (0.0, 0.0): [1.0, 2.0, 3.0, 4.0],
+        (0.25, 0.002): [0.9, 2.5, 2.9, 4.5],
+        (0.5, 0.0): [1.1, 1.5, 3.1, 3.5],
+    }
     a, b = halves(["02", "03", "05", "07"])
     assert (a, b) == ([0, 2], [1, 3])
-    assert tool.choose(table, a) == 0.25 and tool.choose(table, b) == 0.5
-    (row,) = tool.held_out_rows(table, [3.0, 3.0, 3.0, 3.0], [("A", "B", b, 0.25)])
-    assert "| A → B | 0.25 s | 3.500° / 3.000° / 3.000° (1.17×) |" in row
-    assert "better on 1 of 2, median difference +0.500° | better on 0 of 2" in row
+    assert tool.choose(table, a) == (0.25, 0.002) and tool.choose(table, b) == (0.5, 0.0)
+    offline = {0.0: [3.0, 3.0, 3.0, 3.0], 0.002: [2.0, 4.0, 2.0, 3.0]}
+    (row,) = tool.held_out_rows(table, offline, [("A", "B", b, (0.25, 0.002))])
+    assert "| A → B | 0.25 s, 2 ms | 3.500° / 3.000° / 3.000° (1.17×) |" in row
+    assert "| better on 1 of 2, median difference +0.500° |" in row
+    assert "| 3.500° (1.00×), better on 1 of 2, median difference +0.000° |" in row
+    assert row.endswith("| better on 0 of 2, median difference +0.500° |")
     assert paired([1.0, 2.0, 3.0], [2.0, 2.0, 2.0]) == "better on 1 of 3, median difference +0.000°"

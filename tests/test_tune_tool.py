@@ -150,7 +150,7 @@ def _root(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, **trials: dict) -> Pa
 STILL = {"movement": np.zeros(400, dtype=bool)}
 
 
-@pytest.mark.parametrize("name", ["tune", "tune_smooth"])
+@pytest.mark.parametrize("name", ["tune", "tune_smooth", "imu_delay"])
 @pytest.mark.parametrize(
     ("trials", "lines"),
     [

@@ -1,17 +1,22 @@
-"""Choose the smoother's accelerometer averaging time on one half of BROAD, report on the other.
+"""Choose the smoother's averaging time and IMU delay on one half of BROAD, report on the other.
 
     .venv/bin/python tools/tune_smooth.py [--quick] [--results [FILE]]
 
 ``mavest.smooth`` runs its forward pass on the accelerometer low-passed with zero phase
 in the gyro's strapdown frame (``EstimatorConfig.smooth_accel_time``, the time constant;
-0: as measured, the smoother before the average). The time constant is chosen on one
-half of the 22 shared BROAD trials (:func:`mavest.datasets.broad.halves`) as the one of
-:data:`GRID` with the lowest mean 6-D inclination RMSE there, and reported on the other
-half, both ways round: the smoother with the choice, without the average (0) and
-offline VQF (Laidig & Seel 2023's smoother) on the same trials, with the paired
-per-trial differences; 9-D total RMSE likewise, with the same choice. Then the rule
-applied to all 22 gives the default (its figures on the trials it was chosen on are
-not reported as results); the closing line says this run's choice and the default.
+0: as measured, the smoother before the average), and the attitude reported is carried
+forward by how long the IMU's samples lag the truth's (``EstimatorConfig.imu_delay``,
+docs/design.md#the-imus-delay; one smoother run serves every delay). The pair is chosen
+on one half of the 22 shared BROAD trials (:func:`mavest.datasets.broad.halves`) as the
+one of :data:`GRID` × :data:`mavest.datasets.broad.DELAYS` with the lowest mean 6-D
+inclination RMSE there, and reported on the other half, both ways round: the smoother
+with the choice, with neither (0, 0), offline VQF (Laidig & Seel 2023's smoother) and
+offline VQF's attitude carried forward by the same delay (it has no such setting: the
+figure says how much of the difference is the delay) on the same trials, with the
+paired per-trial differences; 9-D total RMSE likewise, with the same choice. Then the
+rule applied to all 22 gives the default averaging time (its figures on the trials it
+was chosen on are not reported as results); the closing line says this run's choice
+and the default.
 The filter's other parameters are mavest's defaults, chosen on the 22 shared trials
 (:data:`mavest.datasets.broad.TUNED_ON`): the per-trial table says which trials those
 are. ``--results`` writes the tables as the Smoothing cross-validation section of
@@ -34,6 +39,7 @@ from collections.abc import Sequence
 import mavest
 from mavest import EstimatorConfig
 from mavest.datasets.broad import (
+    DELAYS,
     TUNED_ON,
     BroadTrial,
     halves,
@@ -41,7 +47,9 @@ from mavest.datasets.broad import (
     trials_to_split,
     tuned_on,
 )
+from mavest.estimator.frames import lead
 from mavest.evaluation import report
+from mavest.evaluation.accuracy import peer_led
 from mavest.evaluation.metrics import rmse_deg
 from mavest.evaluation.peers import PEERS
 
@@ -56,62 +64,89 @@ TITLE = "Smoothing cross-validation"
 #: average is one-sided, do not cancel.
 GRID: tuple[float, ...] = (0.0, 0.25, 0.5)  # s
 QUICK_GRID: tuple[float, ...] = (0.0, 0.5)
+QUICK_DELAYS: tuple[float, ...] = (0.0, 0.0025)
 QUICK_TRIALS = 4
 
-Scores = dict[float, list[float]]  # per time constant, per trial
+Choice = tuple[float, float]  # (smooth_accel_time, imu_delay), s
+Scores = dict[Choice, list[float]]  # per choice, per trial
+PeerScores = dict[float, list[float]]  # per delay, per trial
+NEITHER: Choice = (0.0, 0.0)
 
 
-def scores(trials: Sequence[BroadTrial], grid: Sequence[float], mag: bool) -> Scores:
-    """Each time constant's smoothed RMSE per trial: 6-D inclination, or 9-D total."""
+def scores(
+    trials: Sequence[BroadTrial], grid: Sequence[float], delays: Sequence[float], mag: bool
+) -> Scores:
+    """Each choice's smoothed RMSE per trial: 6-D inclination, or 9-D total. One
+    smoother run per time constant serves every delay: the delay only carries the
+    attitude reported forward, as :func:`mavest.smooth` carries it
+    (:func:`mavest.estimator.frames.lead`, with the smoothed bias)."""
+    metric = "total" if mag else "inclination"
     out: Scores = {}
     for tau in grid:
         config = EstimatorConfig(smooth_accel_time=tau)
-        out[tau] = []
+        for delay in delays:
+            out[(tau, delay)] = []
         for trial in trials:
             series = mavest.smooth(
                 trial.t, trial.gyro, trial.accel, trial.mag if mag else None, config
             )
-            errors = rmse_deg(series.q, trial.truth_q, trial.movement)
-            out[tau].append(errors["total" if mag else "inclination"])
+            for delay in delays:
+                q = lead(series.q, trial.gyro, series.bias, delay)
+                out[(tau, delay)].append(rmse_deg(q, trial.truth_q, trial.movement)[metric])
         print(
-            f"{'9-D' if mag else '6-D'} τ {tau:g} s: {statistics.fmean(out[tau]):.4f}°",
+            f"{'9-D' if mag else '6-D'} τ {tau:g} s: "
+            + ", ".join(
+                f"{delay * 1e3:g} ms {statistics.fmean(out[(tau, delay)]):.4f}°" for delay in delays
+            ),
             file=sys.stderr,
             flush=True,
         )
     return out
 
 
-def peer(trials: Sequence[BroadTrial], mag: bool) -> list[float]:
-    """Offline VQF's RMSE per trial (6-D inclination, or 9-D total)."""
+def peer(trials: Sequence[BroadTrial], delays: Sequence[float], mag: bool) -> PeerScores:
+    """Offline VQF's RMSE per trial (6-D inclination, or 9-D total), its attitude
+    carried forward by each delay (:func:`mavest.evaluation.accuracy.peer_led`)."""
     run = PEERS["offline VQF"]
-    return [
-        rmse_deg(
-            run(trial.t, trial.gyro, trial.accel, trial.mag if mag else None, trial.rate),
-            trial.truth_q,
-            trial.movement,
-        )["total" if mag else "inclination"]
-        for trial in trials
-    ]
+    metric = "total" if mag else "inclination"
+    out: PeerScores = {delay: [] for delay in delays}
+    for trial in trials:
+        q = run(trial.t, trial.gyro, trial.accel, trial.mag if mag else None, trial.rate)
+        for delay in delays:
+            led = peer_led(q, trial.gyro, delay)
+            out[delay].append(rmse_deg(led, trial.truth_q, trial.movement)[metric])
+    return out
 
 
-def choose(table: Scores, subset: Sequence[int]) -> float:
-    """The time constant with the lowest mean RMSE over ``subset`` (ties: the first)."""
-    return min(table, key=lambda tau: statistics.fmean(table[tau][i] for i in subset))
+def choose(table: Scores, subset: Sequence[int]) -> Choice:
+    """The choice with the lowest mean RMSE over ``subset`` (ties: the first)."""
+    return min(table, key=lambda k: statistics.fmean(table[k][i] for i in subset))
 
 
-def held_out_rows(
-    table: Scores, offline: list[float], directions: list[tuple[str, str, list[int], float]]
-) -> list[str]:
+def describe(choice: Choice) -> str:
+    tau, delay = choice
+    return f"{tau:g} s, {delay * 1e3:g} ms"
+
+
+Direction = tuple[str, str, list[int], Choice]  # tuned on, reported on, its trials, choice
+
+
+def held_out_rows(table: Scores, offline: PeerScores, directions: list[Direction]) -> list[str]:
     """One row per direction, on the half not tuned on."""
     rows = []
-    for chosen_on, reported_on, subset, tau in directions:
-        chosen = [table[tau][i] for i in subset]
-        plain = [table[0.0][i] for i in subset]
-        theirs = [offline[i] for i in subset]
-        mean, mean_plain, mean_theirs = (statistics.fmean(v) for v in (chosen, plain, theirs))
+    for chosen_on, reported_on, subset, choice in directions:
+        chosen = [table[choice][i] for i in subset]
+        plain = [table[NEITHER][i] for i in subset]
+        theirs = [offline[0.0][i] for i in subset]
+        led = [offline[choice[1]][i] for i in subset]
+        mean, mean_plain, mean_theirs, mean_led = (
+            statistics.fmean(v) for v in (chosen, plain, theirs, led)
+        )
         rows.append(
-            f"| {chosen_on} → {reported_on} | {tau:g} s | {mean:.3f}° / {mean_plain:.3f}° / "
-            f"{mean_theirs:.3f}° ({mean / mean_theirs:.2f}×) | {report.paired(chosen, theirs)} "
+            f"| {chosen_on} → {reported_on} | {describe(choice)} | {mean:.3f}° / "
+            f"{mean_plain:.3f}° / {mean_theirs:.3f}° ({mean / mean_theirs:.2f}×) "
+            f"| {report.paired(chosen, theirs)} "
+            f"| {mean_led:.3f}° ({mean / mean_led:.2f}×), {report.paired(chosen, led)} "
             f"| {report.paired(chosen, plain)} |"
         )
     return rows
@@ -120,15 +155,16 @@ def held_out_rows(
 def per_trial_rows(
     trials: Sequence[BroadTrial],
     table: Scores,
-    offline: list[float],
-    directions: list[tuple[str, str, list[int], float]],
+    offline: PeerScores,
+    directions: list[Direction],
 ) -> list[str]:
     rows = []
-    for _, reported_on, subset, tau in directions:
+    for _, reported_on, subset, choice in directions:
         for i in subset:
             rows.append(
-                f"| {trials[i].name} | {reported_on} | {tau:g} s | {table[tau][i]:.3f}° | "
-                f"{table[0.0][i]:.3f}° | {offline[i]:.3f}° "
+                f"| {trials[i].name} | {reported_on} | {describe(choice)} "
+                f"| {table[choice][i]:.3f}° | {table[NEITHER][i]:.3f}° | {offline[0.0][i]:.3f}° "
+                f"| {offline[choice[1]][i]:.3f}° "
                 f"| {'yes' if tuned_on(trials[i].name) else 'no'} |"
             )
     return rows
@@ -140,7 +176,9 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__.split("\n\n", 1)[1],
     )
-    parser.add_argument("--quick", action="store_true", help="two time constants, four trials")
+    parser.add_argument(
+        "--quick", action="store_true", help="two time constants and delays, four trials"
+    )
     report.add_results_option(parser)
     args = parser.parse_args(argv)
     start = time.perf_counter()
@@ -148,15 +186,21 @@ def main(argv: list[str] | None = None) -> int:
     if trials is None:
         return 2
     grid = QUICK_GRID if args.quick else GRID
-    table_6d, table_9d = scores(trials, grid, False), scores(trials, grid, True)
-    offline_6d, offline_9d = peer(trials, False), peer(trials, True)
+    delays = QUICK_DELAYS if args.quick else DELAYS
+    table_6d = scores(trials, grid, delays, False)
+    table_9d = scores(trials, grid, delays, True)
+    offline_6d, offline_9d = peer(trials, delays, False), peer(trials, delays, True)
     a, b = halves(trials)
-    directions = [("A", "B", b, choose(table_6d, a)), ("B", "A", a, choose(table_6d, b))]
+    directions: list[Direction] = [
+        ("A", "B", b, choose(table_6d, a)),
+        ("B", "A", a, choose(table_6d, b)),
+    ]
     overall = choose(table_6d, range(len(trials)))
     header = (
-        "| tuned on → reported on | chosen | {what}: smoothed / without the average / "
-        "offline VQF | smoothed − offline VQF, paired | smoothed − without the average, "
-        "paired |\n|---|---|---|---|---|"
+        "| tuned on → reported on | chosen (averaging, delay) | {what}: smoothed / with "
+        "neither / offline VQF | smoothed − offline VQF, paired | offline VQF carried "
+        "forward by the same delay, smoothed − it, paired | smoothed − with neither, "
+        "paired |\n|---|---|---|---|---|---|"
     )
     labels = trial_labels([t.name for t in trials])
     in_sample = sum(tuned_on(t.name) for t in trials)
@@ -167,8 +211,9 @@ def main(argv: list[str] | None = None) -> int:
             + ", ".join(labels[i] for i in a)
             + "; B = "
             + ", ".join(labels[i] for i in b)
-            + ". Every figure below is on the half the time constant was **not** chosen on "
-            "(by mean 6-D inclination); the 9-D rows use the same choice. The filter's "
+            + ". Every figure below is on the half the averaging time and delay were "
+            "**not** chosen on (by mean 6-D inclination); the 9-D rows use the same "
+            "choice. The filter's "
             "other parameters are mavest's defaults, chosen on the "
             f"{len(TUNED_ON)} trials of mavest.datasets.broad.TUNED_ON: on those (column "
             "'defaults chosen on it') they are in-sample.\n"
@@ -180,18 +225,26 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(held_out_rows(table_9d, offline_9d, directions)))
         print()
         print(
-            "| trial | held out in | chosen | 6-D inclination: smoothed | without the "
-            "average | offline VQF | defaults chosen on it |\n|---|---|---|---|---|---|---|"
+            "| trial | held out in | chosen | 6-D inclination: smoothed | with neither "
+            "| offline VQF | offline VQF carried forward | defaults chosen on it |\n"
+            "|---|---|---|---|---|---|---|---|"
         )
         print("\n".join(per_trial_rows(trials, table_6d, offline_6d, directions)))
         default = EstimatorConfig().smooth_accel_time
         print(
-            f"\nThe rule applied to all {len(trials)} trials, this run's choice: {overall:g} s "
-            f"(the default, EstimatorConfig.smooth_accel_time, is {default:g} s"
-            + (", the same" if overall == default else "")
-            + "). Mean 6-D inclination of "
-            "every time constant over all the trials (tuned on, not results): "
-            + ", ".join(f"{tau:g} s {statistics.fmean(table_6d[tau]):.3f}°" for tau in grid)
+            f"\nThe rule applied to all {len(trials)} trials, this run's choice: "
+            f"{describe(overall)} (the default averaging time, "
+            f"EstimatorConfig.smooth_accel_time, is {default:g} s"
+            + (", the same" if overall[0] == default else "")
+            + "; the delay is the sensor's, which a user sets: none by default). Mean 6-D "
+            "inclination of every choice over all the trials (tuned on, not results): "
+            + ", ".join(f"{describe(k)} {statistics.fmean(v):.3f}°" for k, v in table_6d.items())
+            + f". Offline VQF's: {statistics.fmean(offline_6d[0.0]):.3f}°; carried forward "
+            + ", ".join(
+                f"{delay * 1e3:g} ms {statistics.fmean(v):.3f}°"
+                for delay, v in offline_6d.items()
+                if delay
+            )
             + "."
         )
     print(f"({time.perf_counter() - start:.0f} s)", file=sys.stderr)

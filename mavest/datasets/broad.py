@@ -114,6 +114,13 @@ TUNED_ON = frozenset(
 )
 
 
+#: The IMU delays (s) tools/tune_smooth.py chooses ``imu_delay`` from on a half of the trials:
+#: over all 22 shared trials, mavest's, its smoother's, VQF's and offline VQF's
+#: attitudes are nearest the optical truth carried forward by about 2.5 ms
+#: (tools/imu_delay.py, docs/design.md#the-imus-delay).
+DELAYS: tuple[float, ...] = (0.0, 0.001, 0.002, 0.0025, 0.003)
+
+
 def tuned_on(name: str) -> bool:
     """Whether mavest's defaults were chosen on the BROAD trial of this name
     (:data:`TUNED_ON`): its figures are then in-sample."""

@@ -48,6 +48,8 @@ STANDARD_GRAVITY = 9.80665  # m/s², the value MAVLink's mG units are defined wi
 MAX_SPECIFIC_FORCE = 50.0 * STANDARD_GRAVITY  # m/s²
 # An accelerometer misaligned by more than this is mounted wrong, not miscalibrated.
 MAX_ALIGNMENT_SIGMA = math.radians(10.0)  # rad
+# A sensor's own filters delay it by milliseconds; a delay this long is not one of them.
+MAX_IMU_DELAY = 0.1  # s
 
 # A gyro rate beyond this on any axis is a broken sensor or a corrupt packet, never
 # flight (≈ 2900°/s; MEMS gyros range to ±2000°/s): the filter skips such a sample as it
@@ -131,6 +133,13 @@ class EstimatorConfig:
     # that error, so it is added to the tilt covariance the estimate reports, not to
     # the filter's own (docs/design.md#the-accelerometers-alignment). 0: none.
     accel_alignment_sigma: float = 0.0  # rad
+    # How long the IMU's samples lag the motion they measure: the group delay of its
+    # anti-alias and digital low-pass filters, from its datasheet and settings. The
+    # filter runs on the samples as they are, so its state is the attitude this long
+    # before each sample's time stamp; the estimate reported is that attitude carried
+    # forward by the sample's rate, q ⊗ Exp((ω − b) τ), the attitude at the time stamp
+    # (docs/design.md#the-imus-delay). 0: none.
+    imu_delay: float = 0.0  # s
     gravity: float = STANDARD_GRAVITY
 
     # Accelerometer robustness in dynamic motion.
@@ -305,6 +314,10 @@ class EstimatorConfig:
             self.accel_alignment_sigma <= MAX_ALIGNMENT_SIGMA,
             f"accel_alignment_sigma must be at most {MAX_ALIGNMENT_SIGMA:g} rad (10°)",
         )
+        _require(
+            self.imu_delay <= MAX_IMU_DELAY,
+            f"imu_delay must be at most {MAX_IMU_DELAY:g} s, got {self.imu_delay}",
+        )
         for name in (
             "gyro_noise_density",
             "accel_noise_density",
@@ -353,6 +366,7 @@ class EstimatorConfig:
             "velocity_adapt_time",
             "smooth_accel_time",
             "accel_alignment_sigma",
+            "imu_delay",
         ):
             require_number(name, getattr(self, name), zero=True)
         for name in ("initial_bias", "compass_ofs", "compass_dia", "compass_odi"):

@@ -23,7 +23,7 @@ from mavest import so3
 from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
 from mavest.estimator.config import MAX_ANGULAR_RATE, EstimatorConfig, config_or_default
-from mavest.estimator.frames import add_reported_alignment
+from mavest.estimator.frames import add_reported_alignment, lead_into
 from mavest.estimator.heading import turn_heading
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.linalg import copy_into, copy_matrix_into
@@ -103,7 +103,7 @@ def _run_batch(
         step(
             s, c, t[i], gyro[i], accel[i], mag[min(i, last_mag)], linear_accel[min(i, last_linear)]
         )
-        copy_into(out_q[i], s.q)
+        lead_into(s.q, gyro[i], s.b, c.imu_delay, out_q[i])
         copy_into(out_bias[i], s.b)
         copy_matrix_into(out_cov[i], s.P[:N_ERROR, :N_ERROR])
         add_reported_alignment(s, c, out_cov[i])

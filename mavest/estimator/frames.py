@@ -90,6 +90,31 @@ def add_alignment(q: np.ndarray, variance: float, right: bool, cov: np.ndarray) 
         add_alignment_into(q[k], variance, right, cov[k])
 
 
+@inplace_kernel
+def lead_into(
+    q: np.ndarray, gyro: np.ndarray, b: np.ndarray, delay: float, out: np.ndarray
+) -> None:
+    """The attitude an estimate reports at its sample's time stamp: the filter's attitude q,
+    which is the IMU's ``delay`` seconds earlier, carried forward by the sample's rate,
+    q ⊗ Exp((ω − b) τ) (docs/design.md#the-imus-delay). Without a delay, or without a
+    finite rate to carry it by, q itself. ``out`` may not alias q."""
+    if delay == 0.0 or not vector_is_finite(gyro):
+        copy_into(out, q)
+        return
+    so3.quat_times_exp_into(
+        q, (gyro[0] - b[0]) * delay, (gyro[1] - b[1]) * delay, (gyro[2] - b[2]) * delay, out
+    )
+
+
+@kernel
+def lead(q: np.ndarray, gyro: np.ndarray, b: np.ndarray, delay: float) -> np.ndarray:
+    """:func:`lead_into` for each estimate of a series: q (N, 4), gyro and b (N, 3)."""
+    out = np.empty_like(q)
+    for k in range(q.shape[0]):
+        lead_into(q[k], gyro[k], b[k], delay, out[k])
+    return out
+
+
 @inplace_inlined_kernel
 def add_reported_alignment(s: StateRecord, c: CoefficientsRecord, cov: np.ndarray) -> None:
     """The accelerometer's alignment (``c.alignment_var``) added to ``cov``, a copy of P's

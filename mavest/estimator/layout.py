@@ -190,6 +190,7 @@ COEFFICIENTS_DTYPE = np.dtype(
         # at the next update (propagation's "pending transition"); 0: every sample's
         ("accumulate", np.int64),
         ("alignment_var", np.float64),  # rad², the accelerometer's, each horizontal axis
+        ("imu_delay", np.float64),  # s the estimate reported is carried forward
         ("velocity_var", np.float64),
         ("velocity_time", np.float64),
         ("velocity_adapt_time", np.float64),  # s; 0: σ_v fixed
@@ -455,6 +456,7 @@ def make_coefficients(config: EstimatorConfig) -> np.ndarray:
     # (the sigma-point prediction is not linear: it keeps propagating every sample)
     c["accumulate"] = int(c["update_interval"][0] > 0.0 and config.update != "sigma_point")
     c["alignment_var"] = config.accel_alignment_sigma**2
+    c["imu_delay"] = config.imu_delay
     c["velocity_var"] = config.velocity_sigma**2
     c["velocity_time"] = config.velocity_time
     c["velocity_adapt_time"] = config.velocity_adapt_time

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.spatial.transform import Rotation
 
 from mavest.estimator import StepFlags
 from mavest.estimator.config import EstimatorConfig
@@ -381,7 +382,7 @@ class ReferenceFilter:
             report.innovation = np.full(2, math.nan)
             report.nis = report.heading_innovation = report.heading_nis = math.nan
             self.initialise(t, accel, mag)
-            return self.estimate()
+            return self.estimate(gyro)
         dt = t - self.t
         if not 0.0 < dt <= c.max_dt:
             raise ValueError(f"t = {t}: Δt = {dt} s is outside the reference's scope")
@@ -413,16 +414,23 @@ class ReferenceFilter:
             self.accel_update(t)
             self.mag_update(t, mag, dt)
         self.health_rules()
-        return self.estimate()
+        return self.estimate(gyro)
 
-    def estimate(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """q, b and the covariance reported: P's attitude and bias, and the
-        accelerometer's alignment on the world's two horizontal axes, which no update
-        removes (docs/design.md#the-accelerometers-alignment)."""
+    def estimate(self, gyro: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """q, b and the covariance reported: q carried forward over ``imu_delay`` by
+        this sample's rate, ``gyro`` − b (docs/design.md#the-imus-delay); P's attitude
+        and bias, and the accelerometer's alignment on the world's two horizontal axes,
+        which no update removes (docs/design.md#the-accelerometers-alignment)."""
         cov = self.P[:6, :6].copy()
         cov[0, 0] += self.config.accel_alignment_sigma**2  # (left error: δθ in the world)
         cov[1, 1] += self.config.accel_alignment_sigma**2
-        return self.q.copy(), self.b.copy(), cov
+        q = self.q.copy()
+        if self.config.imu_delay:
+            turn = Rotation.from_rotvec((gyro - self.b) * self.config.imu_delay)
+            lead = Rotation.from_quat(np.roll(q, -1)) * turn  # (scipy's x, y, z, w)
+            led = np.roll(lead.as_quat(), 1)
+            q = led if np.dot(led, q) >= 0.0 else -led  # (the filter's sign: q's side)
+        return q, self.b.copy(), cov
 
     # -- initial alignment (docs/design.md#health-rules, "Input") -------------
 

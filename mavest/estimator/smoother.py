@@ -42,7 +42,7 @@ from mavest.estimator.estimator import (
     estimate,
     refuse_wrong_unit,
 )
-from mavest.estimator.frames import add_alignment
+from mavest.estimator.frames import add_alignment, lead
 from mavest.estimator.fusion import BACKWARD_HEADING, TILT, TILT_AND_HEADING, fuse_block
 from mavest.estimator.layout import StepFlags
 from mavest.estimator.zero_phase import zero_phase_blocks
@@ -227,7 +227,7 @@ def smooth_forward(
     blocks = _fused_blocks(
         forward.flags,
         forward.mag_used,
-        lambda k: forward.q[k],
+        lambda k: (forward.q[k], forward.bias[k]),
         forward.rows,
         (t, gyro, accel, mag_array, linear),
         config,
@@ -272,7 +272,7 @@ def smooth_blocks(
     yield from _fused_blocks(
         forward.flags,
         forward.mag_used,
-        forward.q_at,
+        forward.estimate_at,
         forward.rows,
         (t, gyro, accel, mag_array, linear),
         config,
@@ -300,7 +300,7 @@ class _CheckpointedPass:
         self._inputs = (t, gyro, accel, mag, linear_accel)
         self._estimator = Estimator(config)
         self._states: dict[int, np.ndarray] = {}
-        self._last: tuple[int, np.ndarray | None] = (-1, None)
+        self._last: tuple[int, np.ndarray | None, np.ndarray | None] = (-1, None, None)
         self.flags = np.zeros(n, dtype=np.int32)
         self.mag_used = np.zeros(n, dtype=np.bool_)
         for lo, hi in reversed(list(_backward_blocks(n))):
@@ -310,7 +310,8 @@ class _CheckpointedPass:
             self.mag_used[lo:hi] = out.mag_used
             estimated = np.flatnonzero((out.flags & NO_ESTIMATE) == 0)
             if estimated.shape[0]:
-                self._last = (lo + int(estimated[-1]), out.q[estimated[-1]].copy())
+                k = int(estimated[-1])
+                self._last = (lo + k, out.q[k].copy(), out.bias[k].copy())
         refuse_wrong_unit(self._estimator, self.flags)
 
     def _run(self, lo: int, hi: int) -> EstimateSeries:
@@ -323,12 +324,12 @@ class _CheckpointedPass:
             None if linear_accel is None else linear_accel[lo:hi],
         )
 
-    def q_at(self, k: int) -> np.ndarray:
-        """The attitude of the pass's last estimate (``k``, its row)."""
-        last, q = self._last
-        if k != last or q is None:
+    def estimate_at(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The attitude and bias of the pass's last estimate (``k``, its row)."""
+        last, q, b = self._last
+        if k != last or q is None or b is None:
             raise ValueError(f"row {k} is not the forward pass's last estimate ({last})")
-        return q
+        return q, b
 
     def rows(self, lo: int, hi: int) -> EstimateSeries:
         """The estimates of block [lo, hi), run again from the state noted at ``lo``."""
@@ -345,7 +346,7 @@ def _backward_blocks(n: int) -> Iterator[tuple[int, int]]:
 def _fused_blocks(
     flags: np.ndarray,
     mag_used: np.ndarray,
-    q_at: Callable[[int], np.ndarray],
+    estimate_at: Callable[[int], tuple[np.ndarray, np.ndarray]],
     forward_rows: Callable[[int, int], EstimateSeries],
     inputs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None],
     config: EstimatorConfig,
@@ -354,8 +355,8 @@ def _fused_blocks(
     """The backward pass over the recording, fused a block at a time into the forward
     pass's estimates of those rows (``forward_rows(lo, hi)``: each block asked once, from
     the end; its q, bias and cov overwritten with the smoothed ones), each yielded with
-    its first row. ``flags``, ``mag_used``: the forward pass's, whole; ``q_at(k)``: its
-    attitude at its last estimate, row ``k``; ``inputs``: the samples as measured
+    its first row. ``flags``, ``mag_used``: the forward pass's, whole; ``estimate_at(k)``:
+    its attitude and bias at its last estimate, row ``k``; ``inputs``: the samples as measured
     (t, gyro, accel, mag, linear_accel), which the backward pass takes."""
     t, gyro, accel, mag_array, linear = inputs
     n = t.shape[0]
@@ -383,9 +384,16 @@ def _fused_blocks(
     # is taken off each block of the forward pass's and added to the smoothed ones.
     alignment = config.accel_alignment_sigma**2
     right = config.error == "right"
+    # Both passes' states are the attitude ``imu_delay`` before each time stamp (each
+    # takes the samples as they are). The forward pass's reported attitudes are taken
+    # back to its state's, fused there, and the smoothed one carried forward as the
+    # filter carries its own (frames.lead_into).
+    delay = config.imu_delay
     backward = Estimator(
         config.replace(
-            initial_bias=tuple(-np.asarray(config.initial_bias)), accel_alignment_sigma=0.0
+            initial_bias=tuple(-np.asarray(config.initial_bias)),
+            accel_alignment_sigma=0.0,
+            imu_delay=0.0,
         )
     )
     if backward_start is None:
@@ -398,7 +406,9 @@ def _fused_blocks(
         # smoothed attitude worse than the filter's. Its own magnetometer sets its
         # heading, unless a known acceleration (removed in the world frame) needs the
         # heading from the start.
-        backward.initialise(0.0, q_at(last), heading_known=_any_known(linear))
+        q_last, b_last = estimate_at(last)
+        state = lead(q_last[None], gyro[last : last + 1], b_last[None], -delay)[0]
+        backward.initialise(0.0, state, heading_known=_any_known(linear))
     else:
         q0, b0, P0 = backward_start
         flip = np.diag([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])  # δb of the backward pass is −δb
@@ -409,6 +419,8 @@ def _fused_blocks(
     after_q, after_b, after_P = np.zeros(4), np.zeros(3), np.zeros((6, 6))
     for lo, hi in _backward_blocks(n):
         forward = forward_rows(lo, hi)
+        if delay:
+            forward.q[:] = lead(forward.q, gyro[lo:hi], forward.bias, -delay)
         add_alignment(forward.q, -alignment, right, forward.cov)
         order = np.arange(hi - 1, lo - 1, -1)
         # the gyro sample that covers (t_k, t_k+1] is t_k+1's: the backward pass,
@@ -462,6 +474,8 @@ def _fused_blocks(
         after_flags = out.flags[-1]
         after_q, after_b, after_P = out.q[-1].copy(), out.bias[-1].copy(), out.cov[-1].copy()
         add_alignment(forward.q, alignment, right, forward.cov)
+        if delay:
+            forward.q[:] = lead(forward.q, gyro[lo:hi], forward.bias, delay)
         yield lo, forward
 
 

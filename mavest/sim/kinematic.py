@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mavest import so3
 from mavest._jit import kernel
@@ -45,6 +46,9 @@ class ImuNoise:
     # the accelerometer turned off the body by a constant rotation about the body's x and
     # y axes, each drawn with this σ: the gravity direction it measures is that far off
     accel_alignment_sigma: float = 0.0  # rad
+    # every sample measures the motion this long before its time stamp (the sensor's
+    # filters' group delay): the truth at a time stamp is the motion this much later
+    imu_delay: float = 0.0  # s
 
     @classmethod
     def matching(cls, config: EstimatorConfig) -> ImuNoise:
@@ -57,6 +61,7 @@ class ImuNoise:
             config.mag_heading_noise_density,
             config.gyro_scale_noise_density,
             config.accel_alignment_sigma,
+            config.imu_delay,
         )
 
 
@@ -227,7 +232,10 @@ def simulate(
 
     The truth at t[i] is q[i] = q[i−1] ⊗ Exp(ω_i Δt) with ω_i the body rate at
     the middle of the interval, so the filter's "rate held over the interval"
-    model is exact; gyro_i = ω_i + b_i + white noise.
+    model is exact; gyro_i = ω_i + b_i + white noise. With ``noise.imu_delay`` τ the
+    samples are those of the motion τ before their time stamps: the attitude returned
+    at t[i] is q[i] ⊗ Exp(ω τ), ω the body rate at t[i] + τ/2 (the same midpoint rule);
+    the linear acceleration and velocity returned stay those the samples measured.
     """
     noise = noise if noise is not None else ImuNoise()
     motion = motion if motion is not None else Motion()
@@ -272,4 +280,12 @@ def simulate(
     east = sin * field_ned[0] + cos * field_ned[1]
     field_world = np.column_stack([north, east, np.full(n, field_ned[2])])
     mag = rotate_to_body(q, field_world)
+    if noise.imu_delay > 0.0:
+        later, later_rates = _euler_and_rates(
+            t + 0.5 * noise.imu_delay, np.random.default_rng(seed + 1), motion, yaw0
+        )
+        # (scipy's rotations, not the filter's: the truth is made independently of it)
+        turn = Rotation.from_rotvec(_body_rates(later, later_rates) * noise.imu_delay)
+        moved = (Rotation.from_quat(q[:, [1, 2, 3, 0]]) * turn).as_quat(canonical=True)
+        q = np.ascontiguousarray(moved[:, [3, 0, 1, 2]])
     return SimulatedImu(t, gyro, accel, q, bias, linear, velocity, mag, field_ned, noise)

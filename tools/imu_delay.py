@@ -1,0 +1,163 @@
+"""How long BROAD's IMU samples lag its optical truth, as every filter sees it.
+
+    .venv/bin/python tools/imu_delay.py [--quick] [--results [FILE]]
+
+Each filter is run once per trial on the samples as recorded (6-D: gyroscope and
+accelerometer) and its attitude is carried forward by each delay τ of :data:`GRID`,
+q ⊗ Exp((ω − b) τ), as ``EstimatorConfig.imu_delay`` carries mavest's
+(:func:`mavest.estimator.frames.lead`; a peer's with the gyro's rate,
+:func:`mavest.evaluation.accuracy.peer_led`). The mean 6-D inclination RMSE over the
+trials, per delay, for mavest's filter and smoother (defaults) and for VQF and offline
+VQF: if the lag is the data's, every filter's error is least at the same delay, and
+carrying them all forward by it leaves their differences to what they estimate.
+
+Then the delay is chosen as ``tools/tune.py`` and ``tools/tune_smooth.py`` choose it,
+on one half of the trials (:func:`mavest.datasets.broad.halves`), by mavest's mean
+inclination, and each filter reported on the other half with it: the paired
+per-trial differences of mavest against each peer carried forward alike. Figures on
+the half a delay was chosen on are not results. ``--results`` writes the tables as the
+IMU delay section of docs/results.md (or FILE).
+
+Any folder of BROAD-format trials will do (``MAVEST_DATA``): a file that is not a
+readable trial, a second copy of a recording, or a trial with nothing to score is left
+out with one line; fewer than two trials left, or no BROAD folder, is one line and
+exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+import mavest
+from mavest.datasets.broad import BroadTrial, halves, trial_labels, trials_to_split
+from mavest.estimator.frames import lead
+from mavest.evaluation import report
+from mavest.evaluation.accuracy import peer_led
+from mavest.evaluation.metrics import rmse_deg
+from mavest.evaluation.peers import PEERS
+
+TITLE = "IMU delay"
+GRID: tuple[float, ...] = tuple(k * 5e-4 for k in range(11))  # s: 0 to 5 ms
+QUICK_TRIALS = 4
+OURS = ("mavest", "mavest.smooth")
+
+#: Per trial, the attitude carried forward by a delay (s).
+Carried = Callable[[float], np.ndarray]
+
+
+def runs(trial: BroadTrial) -> dict[str, Carried]:
+    """Each filter run once on the trial, as a function of the delay it is carried by."""
+    t, gyro, accel = trial.t, trial.gyro, trial.accel
+    filtered = mavest.estimate(t, gyro, accel)
+    smoothed = mavest.smooth(t, gyro, accel)
+    vqf = PEERS["VQF"](t, gyro, accel, None, trial.rate)
+    offline = PEERS["offline VQF"](t, gyro, accel, None, trial.rate)
+    return {
+        "mavest": lambda d: lead(filtered.q, gyro, filtered.bias, d),
+        "mavest.smooth": lambda d: lead(smoothed.q, gyro, smoothed.bias, d),
+        "VQF": lambda d: peer_led(vqf, gyro, d),
+        "offline VQF": lambda d: peer_led(offline, gyro, d),
+    }
+
+
+def score(trials: Sequence[BroadTrial]) -> dict[str, dict[float, list[float]]]:
+    """Each filter's 6-D inclination RMSE (°) per delay, per trial."""
+    table: dict[str, dict[float, list[float]]] = {}
+    for trial in trials:
+        for name, carried in runs(trial).items():
+            per_delay = table.setdefault(name, {d: [] for d in GRID})
+            for delay in GRID:
+                errors = rmse_deg(carried(delay), trial.truth_q, trial.movement)
+                per_delay[delay].append(errors["inclination"])
+        print(f"imu_delay: {trial.name}", file=sys.stderr, flush=True)
+    return table
+
+
+def curve_table(table: dict[str, dict[float, list[float]]]) -> str:
+    names = list(table)
+    lines = [
+        "| delay | " + " | ".join(names) + " |",
+        "|---" * (len(names) + 1) + "|",
+    ]
+    best = {name: min(GRID, key=lambda d: statistics.fmean(table[name][d])) for name in names}
+    for delay in GRID:
+        cells = []
+        for name in names:
+            cell = f"{statistics.fmean(table[name][delay]):.3f}°"
+            cells.append(f"**{cell}**" if delay == best[name] else cell)
+        lines.append(f"| {delay * 1e3:.1f} ms | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def held_out_table(table: dict[str, dict[float, list[float]]], a: list[int], b: list[int]) -> str:
+    lines = [
+        "| tuned on → reported on | mavest's delay, by | ours | peer | ours / peer "
+        "| carried forward alike: ours − peer, paired | as published (peer at 0 ms): "
+        "ours / peer |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for tuned, reported, on, subset in (("A", "B", a, b), ("B", "A", b, a)):
+        for ours, peer in (("mavest", "VQF"), ("mavest.smooth", "offline VQF")):
+            delay = min(GRID, key=lambda d: statistics.fmean(table[ours][d][i] for i in on))
+            mine = [table[ours][delay][i] for i in subset]
+            theirs = [table[peer][delay][i] for i in subset]
+            raw = [table[peer][0.0][i] for i in subset]
+            lines.append(
+                f"| {tuned} → {reported} | {delay * 1e3:.1f} ms, {ours} | {ours} "
+                f"{statistics.fmean(mine):.3f}° | {peer} {statistics.fmean(theirs):.3f}° "
+                f"| {statistics.fmean(mine) / statistics.fmean(theirs):.2f}× "
+                f"| {report.paired(mine, theirs)} "
+                f"| {statistics.fmean(mine) / statistics.fmean(raw):.2f}× |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__.split("\n\n", 1)[1],
+    )
+    parser.add_argument("--quick", action="store_true", help="four trials")
+    report.add_results_option(parser)
+    args = parser.parse_args(argv)
+    start = time.perf_counter()
+
+    def say(line: str) -> None:
+        print(f"imu_delay: {line}", file=sys.stderr, flush=True)
+
+    trials = trials_to_split(say, QUICK_TRIALS if args.quick else None)
+    if trials is None:
+        return 2
+    table = score(trials)
+    a, b = halves(trials)
+    labels = trial_labels([t.name for t in trials])
+    with report.results_section(args.results, TITLE, __file__, argv, __doc__):
+        print(
+            f"Mean 6-D inclination RMSE over the {len(trials)} BROAD trials, each filter's "
+            "attitude carried forward by the delay (mavest's defaults; VQF and offline VQF "
+            "with theirs). Bold: each filter's least. Over all the trials: the delay is "
+            "chosen on these figures, so they are not results.\n"
+        )
+        print(curve_table(table))
+        print(
+            "\nHeld out: the delay chosen on one half by mavest's mean (A = "
+            + ", ".join(labels[i] for i in a)
+            + "; B = "
+            + ", ".join(labels[i] for i in b)
+            + "), every figure on the other half, each peer carried forward by the same "
+            "delay; the last column sets ours against the peer as it is.\n"
+        )
+        print(held_out_table(table, a, b))
+    print(f"({time.perf_counter() - start:.0f} s)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
