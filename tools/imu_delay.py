@@ -35,7 +35,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 import mavest
-from mavest.datasets.broad import BroadTrial, halves, trial_labels, trials_to_split
+from mavest.datasets.broad import BroadTrial, halves, halves_named, trials_to_split
 from mavest.estimator.frames import lead
 from mavest.evaluation import report
 from mavest.evaluation.accuracy import peer_led
@@ -137,7 +137,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     table = score(trials)
     a, b = halves(trials)
-    labels = trial_labels([t.name for t in trials])
     with report.results_section(args.results, TITLE, __file__, argv, __doc__):
         print(
             f"Mean 6-D inclination RMSE over the {len(trials)} BROAD trials, each filter's "
@@ -147,10 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(curve_table(table))
         print(
-            "\nHeld out: the delay chosen on one half by mavest's mean (A = "
-            + ", ".join(labels[i] for i in a)
-            + "; B = "
-            + ", ".join(labels[i] for i in b)
+            "\nHeld out: the delay chosen on one half by mavest's mean ("
+            + halves_named([t.name for t in trials], a, b)
             + "), every figure on the other half, each peer carried forward by the same "
             "delay; the last column sets ours against the peer as it is.\n"
         )

@@ -71,7 +71,7 @@ from mavest.datasets.broad import (
     TUNED_ON,
     BroadTrial,
     halves,
-    trial_labels,
+    halves_named,
     trials_to_split,
     tuned_on,
 )
@@ -358,16 +358,13 @@ def main(argv: list[str] | None = None) -> int:
     ]
     overall = (choices["all"], mag_for(choices["all"], everything))
     gyro, scale, adapt, velocity_time, alignment = overall[0]
-    labels = trial_labels([t.name for t in trials])
     in_sample = sum(tuned_on(t.name) for t in trials)
     with report.results_section(args.results, profile.title, __file__, argv, __doc__):
         print(
             f"Profile {profile.name} ({profile.config_file}). Halves of the {len(trials)} "
             f"BROAD trials ({in_sample} of them among the {len(TUNED_ON)} mavest's defaults "
-            "were chosen on): A = "
-            + ", ".join(labels[i] for i in a)
-            + "; B = "
-            + ", ".join(labels[i] for i in b)
+            "were chosen on): "
+            + halves_named([t.name for t in trials], a, b)
             + ". Every figure below is on the half the parameters were **not** chosen on, "
             "except the defaults': mavest's defaults were chosen on the "
             f"{len(TUNED_ON)} trials of mavest.datasets.broad.TUNED_ON, so on those "

@@ -43,7 +43,7 @@ from mavest.datasets.broad import (
     TUNED_ON,
     BroadTrial,
     halves,
-    trial_labels,
+    halves_named,
     trials_to_split,
     tuned_on,
 )
@@ -202,15 +202,12 @@ def main(argv: list[str] | None = None) -> int:
         "forward by the same delay, smoothed − it, paired | smoothed − with neither, "
         "paired |\n|---|---|---|---|---|---|"
     )
-    labels = trial_labels([t.name for t in trials])
     in_sample = sum(tuned_on(t.name) for t in trials)
     with report.results_section(args.results, TITLE, __file__, argv, __doc__):
         print(
             f"Halves of the {len(trials)} BROAD trials ({in_sample} of them among the "
-            f"{len(TUNED_ON)} mavest's defaults were chosen on): A = "
-            + ", ".join(labels[i] for i in a)
-            + "; B = "
-            + ", ".join(labels[i] for i in b)
+            f"{len(TUNED_ON)} mavest's defaults were chosen on): "
+            + halves_named([t.name for t in trials], a, b)
             + ". Every figure below is on the half the averaging time and delay were "
             "**not** chosen on (by mean 6-D inclination); the 9-D rows use the same "
             "choice. The filter's "

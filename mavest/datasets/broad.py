@@ -226,6 +226,13 @@ def trial_labels(names: Sequence[str]) -> list[str]:
     return numbers if numbered and len(set(numbers)) == len(numbers) else list(names)
 
 
+def halves_named(names: Sequence[str], a: Sequence[int], b: Sequence[int]) -> str:
+    """The two halves of these trials (:func:`halves`' indices) as a tool's tables name
+    them, ``"A = 02, 05, …; B = 03, 07, …"`` (:func:`trial_labels`)."""
+    labels = trial_labels(names)
+    return f"A = {', '.join(labels[i] for i in a)}; B = {', '.join(labels[i] for i in b)}"
+
+
 def _resolve_trial(path_or_name: Path | str) -> Path:
     """A trial file from a path, a full trial name, or a unique name prefix (``"07"``)."""
     path = Path(path_or_name)
