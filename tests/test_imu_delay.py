@@ -41,7 +41,7 @@ def _rms_deg(q: np.ndarray, truth: np.ndarray) -> float:
 
 def test_it_is_scipys_rotation_carried_forward() -> None:
     """q ⊗ Exp((ω − b) τ), against scipy's composition of rotations; no delay, or a rate
-    that is not finite, reports q itself."""
+    that is not a measurement (not finite, beyond any gyro's range), reports q itself."""
     rng = np.random.default_rng(7)
     q = np.ascontiguousarray(Rotation.random(100, random_state=3).as_quat()[:, [3, 0, 1, 2]])
     gyro = rng.normal(0.0, 3.0, (100, 3))
@@ -53,7 +53,23 @@ def test_it_is_scipys_rotation_carried_forward() -> None:
     np.testing.assert_allclose(led, expected, rtol=0, atol=1e-15)
     np.testing.assert_array_equal(lead(q, gyro, bias, 0.0), q)
     gyro[3] = np.nan
-    np.testing.assert_array_equal(lead(q, gyro, bias, 0.02)[3], q[3])
+    gyro[4, 1] = 1e6
+    carried = lead(q, gyro, bias, 0.02)
+    np.testing.assert_array_equal(carried[3:5], q[3:5])
+
+
+def test_a_skipped_sample_reports_the_estimate_it_holds(delayed) -> None:
+    """A corrupt gyro sample (beyond any gyro's range) is skipped by the step: its estimate
+    is the one before, not turned by a million rad/s over the delay."""
+    flight, gyro, accel = delayed
+    gyro = gyro[:400].copy()
+    gyro[300] = (1e6, -1e6, 0.0)
+    out = mavest.estimate(
+        flight.t[:400], gyro, accel[:400], config=EstimatorConfig(imu_delay=DELAY)
+    )
+    assert out.flags[300] & mavest.StepFlags.GYRO_INVALID
+    state = lead(out.q[299:300], gyro[299:300], out.bias[299:300], -DELAY)[0]
+    np.testing.assert_allclose(out.q[300], state, rtol=0, atol=1e-15)
 
 
 def test_a_delayed_imu_is_reported_at_its_time_stamps(delayed) -> None:

@@ -21,6 +21,7 @@ import numpy as np
 from mavest import so3
 from mavest._jit import inplace_inlined_kernel, inplace_kernel, kernel
 from mavest.estimator.charts import reset_jacobian_into, retract_into
+from mavest.estimator.config import MAX_ANGULAR_RATE
 from mavest.estimator.layout import ERROR_LEFT, N_AXES, N_ERROR, CoefficientsRecord, StateRecord
 from mavest.estimator.linalg import (
     copy_into,
@@ -42,6 +43,20 @@ VEL = N_ERROR + 2 * N_AXES
 @inplace_kernel
 def vector_is_finite(v: np.ndarray) -> bool:
     return math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(v[2])
+
+
+@inplace_kernel
+def within(v: np.ndarray, limit: float) -> bool:
+    """Whether every axis is within ±``limit`` (a NaN fails every comparison: it is not)."""
+    return abs(v[0]) <= limit and abs(v[1]) <= limit and abs(v[2]) <= limit
+
+
+@inplace_kernel
+def gyro_is_valid(gyro: np.ndarray) -> bool:
+    """Whether a gyro sample is a measurement: finite and within any gyro's range
+    (MAX_ANGULAR_RATE; StepFlags.GYRO_INVALID says a sample is not). A rate beyond it is a
+    corrupt value, which integrated would turn the attitude by an arbitrary angle."""
+    return within(gyro, MAX_ANGULAR_RATE)
 
 
 @inplace_kernel
@@ -97,8 +112,9 @@ def lead_into(
     """The attitude an estimate reports at its sample's time stamp: the filter's attitude q,
     which is the IMU's ``delay`` seconds earlier, carried forward by the sample's rate,
     q ⊗ Exp((ω − b) τ) (docs/design.md#the-imus-delay). Without a delay, or without a
-    finite rate to carry it by, q itself. ``out`` may not alias q."""
-    if delay == 0.0 or not vector_is_finite(gyro):
+    rate to carry it by (:func:`gyro_is_valid`: the step skips such a sample), q
+    itself. ``out`` may not alias q."""
+    if delay == 0.0 or not gyro_is_valid(gyro):
         copy_into(out, q)
         return
     so3.quat_times_exp_into(

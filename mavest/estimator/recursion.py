@@ -37,8 +37,8 @@ from mavest.estimator.alignment import (
     prime_filters,
     realign_when_calm,
 )
-from mavest.estimator.config import MAX_ANGULAR_RATE, MAX_SPECIFIC_FORCE, STANDARD_GRAVITY
-from mavest.estimator.frames import vector_is_finite
+from mavest.estimator.config import MAX_SPECIFIC_FORCE, STANDARD_GRAVITY
+from mavest.estimator.frames import gyro_is_valid, vector_is_finite, within
 from mavest.estimator.gravity_update import accel_update, clear_gravity_report
 from mavest.estimator.heading import clear_heading_report, heading_variance, mag_update
 from mavest.estimator.health import check_health
@@ -103,7 +103,7 @@ def step(
     ``s.flags``; the estimate stays finite throughout.
     """
     copy_into(s.linear_accel, linear_accel)
-    if not _within(linear_accel, MAX_SPECIFIC_FORCE):  # (also NaN: unknown)
+    if not within(linear_accel, MAX_SPECIFIC_FORCE):  # (also NaN: unknown)
         # beyond any vehicle's: a corrupt value, not knowledge of the acceleration
         s.linear_accel[0] = math.nan
     _step_sample(s, c, t, gyro, accel, mag)
@@ -114,20 +114,6 @@ def step(
     symmetrise(
         s.P[:N_ERROR, :N_ERROR] if s.flags & _BETWEEN_UPDATES else s.P[: c.n_state, : c.n_state]
     )
-
-
-@inplace_kernel
-def _within(v: np.ndarray, limit: float) -> bool:
-    """Whether every axis is within ±``limit`` (a NaN fails every comparison: it is not)."""
-    return abs(v[0]) <= limit and abs(v[1]) <= limit and abs(v[2]) <= limit
-
-
-@inplace_kernel
-def _gyro_is_valid(gyro: np.ndarray) -> bool:
-    """Whether a gyro sample is a measurement: finite and within any gyro's range
-    (MAX_ANGULAR_RATE; StepFlags.GYRO_INVALID says a sample is not). A rate beyond it is a
-    corrupt value, which integrated would turn the attitude by an arbitrary angle."""
-    return _within(gyro, MAX_ANGULAR_RATE)
 
 
 @inplace_kernel
@@ -149,7 +135,7 @@ def _initialise(
 ) -> None:
     """Not initialised: set the attitude from this sample's accelerometer if it can,
     else say why not."""
-    if math.isfinite(t) and _gyro_is_valid(gyro) and accel_usable_for_alignment(c, accel):
+    if math.isfinite(t) and gyro_is_valid(gyro) and accel_usable_for_alignment(c, accel):
         align(s, c, accel, False, False)
         s.initialised = 1
         s.t = t
@@ -164,7 +150,7 @@ def _initialise(
         s.flags = _NOT_INITIALISED
         if not math.isfinite(t):
             s.flags |= _TIME_NOT_INCREASING
-        if not _gyro_is_valid(gyro):
+        if not gyro_is_valid(gyro):
             s.flags |= _GYRO_INVALID
         if not accel_is_valid(accel):
             s.flags |= _ACCEL_INVALID
@@ -261,7 +247,7 @@ def _step_sample(
         _initialise(s, c, t, gyro, accel, mag)
         return
     dt = t - s.t
-    if _gyro_is_valid(gyro) and far_off_kernel(dt, c.reorder_window, c.max_jump):
+    if gyro_is_valid(gyro) and far_off_kernel(dt, c.reorder_window, c.max_jump):
         if not _new_timeline_confirmed(s, c, t):
             s.flags = _TIME_OFF_TIMELINE
             clear_gravity_report(s)
@@ -273,7 +259,7 @@ def _step_sample(
             s.flags |= _TIME_RESTARTED
             return
         # forward, and it stayed: a gap (below)
-    if not dt > 0.0 or not _gyro_is_valid(gyro):  # (also NaN)
+    if not dt > 0.0 or not gyro_is_valid(gyro):  # (also NaN)
         s.flags = _TIME_NOT_INCREASING if not dt > 0.0 else _GYRO_INVALID
         clear_gravity_report(s)
         clear_heading_report(s)
