@@ -45,7 +45,6 @@ from mavest.evaluation.peers import PEERS
 TITLE = "IMU delay"
 GRID: tuple[float, ...] = tuple(k * 5e-4 for k in range(11))  # s: 0 to 5 ms
 QUICK_TRIALS = 4
-OURS = ("mavest", "mavest.smooth")
 
 #: Per trial, the attitude carried forward by a delay (s).
 Carried = Callable[[float], np.ndarray]
