@@ -189,6 +189,12 @@ def euler_rows(q: np.ndarray) -> np.ndarray:
     return out
 
 
+def packets_per_answer(with_quaternion: bool) -> int:
+    """The packets an answered sample takes: ATTITUDE, and ATTITUDE_QUATERNION with it
+    when that is sent."""
+    return 2 if with_quaternion else 1
+
+
 def attitude_packets(
     time_boot_ms: np.ndarray,
     euler: np.ndarray,
@@ -210,7 +216,7 @@ def attitude_packets(
     n = time_boot_ms.shape[0]
     if mavlink1 is None:
         mavlink1 = np.zeros(n, dtype=np.bool_)
-    step = 2 if q is not None else 1
+    step = packets_per_answer(q is not None)
     attitude = np.zeros(n, dtype=ATTITUDE_DTYPE)
     attitude["time_boot_ms"] = time_boot_ms
     for k, name in enumerate(("roll", "pitch", "yaw")):
@@ -314,7 +320,7 @@ def interleave(
     answered one (``answer_of[i]`` ≥ 0: its row in the packets) followed by its
     answers stamped with its time. Returns (bytes, the end of each record in them)."""
     answered = int((answer_of >= 0).sum())
-    per_answer = 1 if second is None else 2
+    per_answer = packets_per_answer(second is not None)
     if second is None:
         second = NO_PACKETS
     size = int((records.end - records.start).sum()) + answered * 8 * per_answer

@@ -1040,7 +1040,7 @@ class BulkFeed:
         """``count`` samples' answers sent: the encoder's sequence numbers they take,
         and the counts."""
         pipeline = self.pipeline
-        sent = count * (2 if pipeline.config.output.attitude_quaternion else 1)
+        sent = count * bulk.packets_per_answer(pipeline.config.output.attitude_quaternion)
         pipeline.encoder(stream.key.system).take_sequence(sent)
         pipeline.sent += sent
         stream.stats.answered += count
