@@ -30,46 +30,23 @@ import argparse
 import statistics
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
-import numpy as np
-
-import mavest
 from mavest.datasets.broad import BroadTrial, halves, halves_named, trials_to_split
-from mavest.estimator.frames import lead
 from mavest.evaluation import report
-from mavest.evaluation.accuracy import peer_led
+from mavest.evaluation.accuracy import carried_runs
 from mavest.evaluation.metrics import rmse_deg
-from mavest.evaluation.peers import PEERS
 
 TITLE = "IMU delay"
 GRID: tuple[float, ...] = tuple(k * 5e-4 for k in range(11))  # s: 0 to 5 ms
 QUICK_TRIALS = 4
-
-#: Per trial, the attitude carried forward by a delay (s).
-Carried = Callable[[float], np.ndarray]
-
-
-def runs(trial: BroadTrial) -> dict[str, Carried]:
-    """Each filter run once on the trial, as a function of the delay it is carried by."""
-    t, gyro, accel = trial.t, trial.gyro, trial.accel
-    filtered = mavest.estimate(t, gyro, accel)
-    smoothed = mavest.smooth(t, gyro, accel)
-    vqf = PEERS["VQF"](t, gyro, accel, None, trial.rate)
-    offline = PEERS["offline VQF"](t, gyro, accel, None, trial.rate)
-    return {
-        "mavest": lambda d: lead(filtered.q, gyro, filtered.bias, d),
-        "mavest.smooth": lambda d: lead(smoothed.q, gyro, smoothed.bias, d),
-        "VQF": lambda d: peer_led(vqf, gyro, d),
-        "offline VQF": lambda d: peer_led(offline, gyro, d),
-    }
 
 
 def score(trials: Sequence[BroadTrial]) -> dict[str, dict[float, list[float]]]:
     """Each filter's 6-D inclination RMSE (°) per delay, per trial."""
     table: dict[str, dict[float, list[float]]] = {}
     for trial in trials:
-        for name, carried in runs(trial).items():
+        for name, carried in carried_runs(trial).items():
             per_delay = table.setdefault(name, {d: [] for d in GRID})
             for delay in GRID:
                 errors = rmse_deg(carried(delay), trial.truth_q, trial.movement)

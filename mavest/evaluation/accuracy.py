@@ -18,6 +18,8 @@ from mavest.evaluation.metrics import rmse_deg
 from mavest.evaluation.peers import PEERS, PeerAdapter
 
 Filter = Callable[[BroadTrial], np.ndarray]
+#: A filter's attitudes on a trial, carried forward by a delay (s).
+Carried = Callable[[float], np.ndarray]
 
 #: mavest's variants shown beside its default: each changes one choice of the default.
 MAVEST_VARIANTS: dict[str, EstimatorConfig] = {
@@ -76,6 +78,23 @@ def peer_led(q: np.ndarray, gyro: np.ndarray, delay: float) -> np.ndarray:
     mavest's delay, which it has no setting for. (A peer's bias is left in the rate: on
     BROAD it is under 0.01 rad/s, which moves a 3 ms lead by under 0.002°.)"""
     return lead(q, gyro, np.zeros_like(gyro), delay)
+
+
+def carried_runs(trial: BroadTrial) -> dict[str, Carried]:
+    """mavest's filter and smoother (defaults), VQF and offline VQF, each run once on the
+    trial in 6-D, as functions of the delay their attitudes are carried forward by
+    (mavest's as ``imu_delay`` carries them, the peers' by :func:`peer_led`)."""
+    t, gyro, accel = trial.t, trial.gyro, trial.accel
+    filtered = estimate(t, gyro, accel)
+    smoothed = smooth(t, gyro, accel)
+    vqf = PEERS["VQF"](t, gyro, accel, None, trial.rate)
+    offline = PEERS["offline VQF"](t, gyro, accel, None, trial.rate)
+    return {
+        "mavest": lambda d: lead(filtered.q, gyro, filtered.bias, d),
+        "mavest.smooth": lambda d: lead(smoothed.q, gyro, smoothed.bias, d),
+        "VQF": lambda d: peer_led(vqf, gyro, d),
+        "offline VQF": lambda d: peer_led(offline, gyro, d),
+    }
 
 
 @dataclass(frozen=True)
