@@ -58,18 +58,44 @@ def test_it_is_scipys_rotation_carried_forward() -> None:
     np.testing.assert_array_equal(carried[3:5], q[3:5])
 
 
-def test_a_skipped_sample_reports_the_estimate_it_holds(delayed) -> None:
-    """A corrupt gyro sample (beyond any gyro's range) is skipped by the step: its estimate
-    is the one before, not turned by a million rad/s over the delay."""
+def test_a_turn_beyond_half_a_turn_stays_on_the_side_of_q() -> None:
+    """40 rad/s over 0.1 s turns by 4 rad, beyond π: the carried quaternion is scipy's
+    rotation on q's side of the double cover, the side the filter and its reference keep."""
+    q = np.array([[0.9, 0.1, -0.2, 0.3]])
+    q /= np.linalg.norm(q)
+    gyro = np.array([[0.0, 0.0, 40.0]])
+    led = lead(q, gyro, np.zeros((1, 3)), 0.1)
+    expected = Rotation.from_quat(q[:, [1, 2, 3, 0]]) * Rotation.from_rotvec([0, 0, 4.0])
+    expected_q = expected.as_quat()[:, [3, 0, 1, 2]]
+    assert float(led[0] @ q[0]) > 0.0
+    np.testing.assert_allclose(np.abs(led[0] @ expected_q[0]), 1.0, rtol=0, atol=1e-14)
+
+
+def test_a_skipped_sample_reports_the_estimate_before_it(delayed) -> None:
+    """A sample the step skips (a corrupt gyro beyond any gyro's range, a time stamp
+    going back) reports the estimate before it as it was reported: not turned by a
+    million rad/s over the delay, nor jumping back to the filter's own attitude, nor
+    carried by the skipped sample's rate. The placeholder before the filter starts is
+    the identity, as without a delay."""
     flight, gyro, accel = delayed
-    gyro = gyro[:400].copy()
+    t, gyro, accel = flight.t[:400].copy(), gyro[:400].copy(), accel[:400].copy()
     gyro[300] = (1e6, -1e6, 0.0)
-    out = mavest.estimate(
-        flight.t[:400], gyro, accel[:400], config=EstimatorConfig(imu_delay=DELAY)
-    )
+    t[350] = t[340]  # back in time
+    gyro[350] = (3.0, -2.0, 1.0)
+    accel[:5] = 0.0  # nothing to align on yet
+    gyro[:5] = (1.0, 2.0, 3.0)
+    config = EstimatorConfig(imu_delay=DELAY)
+    out = mavest.estimate(t, gyro, accel, config=config)
     assert out.flags[300] & mavest.StepFlags.GYRO_INVALID
-    state = lead(out.q[299:300], gyro[299:300], out.bias[299:300], -DELAY)[0]
-    np.testing.assert_allclose(out.q[300], state, rtol=0, atol=1e-15)
+    assert out.flags[350] & mavest.StepFlags.TIME_NOT_INCREASING
+    np.testing.assert_array_equal(out.q[300], out.q[299])
+    np.testing.assert_array_equal(out.q[350], out.q[349])
+    assert np.all(out.flags[:5] & mavest.StepFlags.NOT_INITIALISED)
+    np.testing.assert_array_equal(out.q[:5], np.tile([1.0, 0.0, 0.0, 0.0], (5, 1)))
+    # the estimates of steps taken are the filter's own carried by their own rate
+    state = lead(out.q[301:302], gyro[301:302], out.bias[301:302], -DELAY)
+    unled = mavest.estimate(t, gyro, accel, config=config.replace(imu_delay=0.0))
+    np.testing.assert_allclose(state[0], unled.q[301], rtol=0, atol=1e-15)
 
 
 def test_a_delayed_imu_is_reported_at_its_time_stamps(delayed) -> None:
@@ -132,7 +158,42 @@ def test_the_smoother_fuses_the_filters_attitudes_and_reports_them_carried(delay
     assert after < 0.6 * _rms_deg(filtered.q, flight.q_true)
 
 
-@pytest.mark.parametrize("value", [-0.001, 0.11, math.inf, math.nan])
+def test_the_smoother_gives_back_what_it_does_not_fuse_bit_for_bit() -> None:
+    """Rows without an estimate (the placeholder before the filter starts), which the
+    smoother does not fuse, are the filter's as reported, every bit: not taken back by
+    the delay and carried forward again."""
+    t = np.arange(400) / 200.0
+    gyro = np.tile([0.3, -0.2, 2.0], (400, 1))
+    accel = np.tile([0.0, 0.0, -9.80665], (400, 1))
+    accel[:100] = 0.0  # nothing to start on
+    config = EstimatorConfig(imu_delay=DELAY, smooth_accel_time=0.0)
+    filtered = mavest.estimate(t, gyro, accel, config=config)
+    smoothed = smooth(t, gyro, accel, config=config)
+    assert np.all(filtered.flags[:100] & mavest.StepFlags.NOT_INITIALISED)
+    np.testing.assert_array_equal(smoothed.q[:100], filtered.q[:100])
+    assert np.abs(smoothed.q[100:] - filtered.q[100:]).max() > 0.0  # (the rest is fused)
+
+
+def test_the_reference_filter_refuses_a_clipped_first_sample() -> None:
+    """A clipped gyro is outside the slow twin's scope on its first sample too, where it
+    would otherwise carry its first attitude forward by a corrupt rate."""
+    with pytest.raises(ValueError, match="clipped"):
+        reference_estimate(
+            np.array([0.0, 0.01]),
+            np.array([[1e6, 0.0, 0.0], [0.0, 0.0, 0.0]]),
+            np.tile([0.0, 0.0, -9.80665], (2, 1)),
+            None,
+            EstimatorConfig(imu_delay=DELAY),
+        )
+
+
+@pytest.mark.parametrize("value", [-0.01, math.nan, math.inf])
+def test_the_simulator_refuses_an_impossible_delay(value: float) -> None:
+    with pytest.raises(ValueError, match="imu_delay"):
+        ImuNoise(imu_delay=value)
+
+
+@pytest.mark.parametrize("value", [-0.001, 0.06, math.inf, math.nan])
 def test_an_impossible_delay_is_refused(value: float) -> None:
     with pytest.raises(ConfigError, match="imu_delay"):
         EstimatorConfig(imu_delay=value)

@@ -23,7 +23,7 @@ from mavest import so3
 from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
 from mavest.estimator.config import MAX_ANGULAR_RATE, EstimatorConfig, config_or_default
-from mavest.estimator.frames import add_reported_alignment, lead_into
+from mavest.estimator.frames import add_reported_alignment, report_attitude_into
 from mavest.estimator.heading import turn_heading
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.linalg import copy_into, copy_matrix_into
@@ -103,7 +103,7 @@ def _run_batch(
         step(
             s, c, t[i], gyro[i], accel[i], mag[min(i, last_mag)], linear_accel[min(i, last_linear)]
         )
-        lead_into(s.q, gyro[i], s.b, c.imu_delay, out_q[i])
+        report_attitude_into(s, c, gyro[i], out_q[i])
         copy_into(out_bias[i], s.b)
         copy_matrix_into(out_cov[i], s.P[:N_ERROR, :N_ERROR])
         add_reported_alignment(s, c, out_cov[i])
@@ -416,7 +416,8 @@ class Estimator:
         after ``t`` is the first step. The heading counts as known: a
         magnetometer then corrects it instead of setting it afresh; with
         ``heading_known`` False the first magnetometer reading sets it, as after
-        an alignment.
+        an alignment. ``q`` is the filter's own attitude (:attr:`q`): with an
+        ``imu_delay``, the IMU's at ``t`` less the delay.
         """
         state = new_state(self._coefficients)
         s = state[0]
@@ -450,6 +451,9 @@ class Estimator:
 
     @property
     def q(self) -> np.ndarray:
+        """The filter's own attitude: the IMU's at its last sample's time stamp less
+        ``imu_delay``, which the estimates carry forward to the time stamp
+        (docs/design.md#the-imus-delay); the same without a delay."""
         return self._state["q"][0].copy()
 
     @property

@@ -22,7 +22,14 @@ from mavest import so3
 from mavest._jit import inplace_inlined_kernel, inplace_kernel, kernel
 from mavest.estimator.charts import reset_jacobian_into, retract_into
 from mavest.estimator.config import MAX_ANGULAR_RATE
-from mavest.estimator.layout import ERROR_LEFT, N_AXES, N_ERROR, CoefficientsRecord, StateRecord
+from mavest.estimator.layout import (
+    ERROR_LEFT,
+    N_AXES,
+    N_ERROR,
+    CoefficientsRecord,
+    StateRecord,
+    StepFlags,
+)
 from mavest.estimator.linalg import (
     copy_into,
     copy_matrix_into,
@@ -109,17 +116,51 @@ def add_alignment(q: np.ndarray, variance: float, right: bool, cov: np.ndarray) 
 def lead_into(
     q: np.ndarray, gyro: np.ndarray, b: np.ndarray, delay: float, out: np.ndarray
 ) -> None:
-    """The attitude an estimate reports at its sample's time stamp: the filter's attitude q,
-    which is the IMU's ``delay`` seconds earlier, carried forward by the sample's rate,
-    q ⊗ Exp((ω − b) τ) (docs/design.md#the-imus-delay). Without a delay, or without a
-    rate to carry it by (:func:`gyro_is_valid`: the step skips such a sample), q
-    itself. ``out`` may not alias q."""
+    """The attitude at a sample's time stamp of a filter's attitude q, which is the IMU's
+    ``delay`` seconds earlier: q carried forward by the sample's rate, q ⊗ Exp((ω − b) τ)
+    (docs/design.md#the-imus-delay), as an estimate of a step taken reports it
+    (:func:`report_attitude_into`); τ < 0 takes it back. Without a delay, or without a
+    rate to carry it by (:func:`gyro_is_valid`), q itself. ``out`` may not alias q."""
     if delay == 0.0 or not gyro_is_valid(gyro):
         copy_into(out, q)
         return
-    so3.quat_times_exp_into(
-        q, (gyro[0] - b[0]) * delay, (gyro[1] - b[1]) * delay, (gyro[2] - b[2]) * delay, out
-    )
+    _carry_into(q, gyro[0] - b[0], gyro[1] - b[1], gyro[2] - b[2], delay, out)
+
+
+@inplace_kernel
+def _carry_into(
+    q: np.ndarray, wx: float, wy: float, wz: float, delay: float, out: np.ndarray
+) -> None:
+    """q ⊗ Exp(ω τ), on q's side of the double cover (a turn beyond π, fast enough a rate
+    over a long enough delay, would otherwise flip the sign the filter's q keeps)."""
+    so3.quat_times_exp_into(q, wx * delay, wy * delay, wz * delay, out)
+    if out[0] * q[0] + out[1] * q[1] + out[2] * q[2] + out[3] * q[3] < 0.0:
+        for i in range(4):
+            out[i] = -out[i]
+
+
+# Rows whose attitude is not a step's own: the placeholder before the filter starts, and
+# the held estimate of a sample the step did not take.
+_PLACEHOLDER = StepFlags.NOT_INITIALISED
+_SKIPPED = StepFlags.SKIPPED
+
+
+@inplace_kernel
+def report_attitude_into(
+    s: StateRecord, c: CoefficientsRecord, gyro: np.ndarray, out: np.ndarray
+) -> None:
+    """The attitude the estimate after a step on ``gyro`` reports: the filter's, carried
+    forward over ``c.imu_delay`` by the sample's rate (:func:`lead_into`). A sample the
+    step skipped reports the estimate before it, carried by the rate that one was; the
+    placeholder before the filter starts is reported as it is."""
+    if c.imu_delay == 0.0 or s.flags & _PLACEHOLDER:
+        copy_into(out, s.q)
+        return
+    if not s.flags & _SKIPPED:  # (a step taken: its gyro is a measurement)
+        for i in range(3):
+            s.reported_rate[i] = gyro[i] - s.b[i]
+    r = s.reported_rate
+    _carry_into(s.q, r[0], r[1], r[2], c.imu_delay, out)
 
 
 @kernel

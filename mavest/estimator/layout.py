@@ -315,6 +315,9 @@ STATE_DTYPE = np.dtype(
         ("heading_innovation", np.float64),  # magnetometer azimuth − declination, rad
         ("heading_nis", np.float64),  # its normalised square (χ², 1 dof)
         ("mag_used", np.int64),
+        # ω − b of the last sample stepped on: what an estimate is carried forward by
+        # over imu_delay (frames.report_attitude_into), held over skipped samples
+        ("reported_rate", np.float64, 3),
         # Scratch, so that the hot path allocates nothing. A w_ buffer belongs to the
         # module named in its prefix, w_<module>_… (mavest.estimator.<module>: see
         # SCRATCH_OWNERS); nothing else reads or writes it. A kernel that calls another

@@ -34,7 +34,7 @@ from numpy.typing import ArrayLike
 
 from mavest import so3
 from mavest._jit import callback_kernel, inplace_kernel, kernel, without_dispatch
-from mavest.estimator.frames import add_reported_alignment, lead_into
+from mavest.estimator.frames import add_reported_alignment, report_attitude_into
 from mavest.estimator.layout import (
     COEFFICIENTS_DTYPE,
     N_ERROR,
@@ -171,7 +171,7 @@ def step_into_row(
     sample[10] = ly
     sample[11] = lz
     step(s, c, t, sample[:3], sample[3:6], sample[6:9], sample[9:])
-    lead_into(s.q, sample[:3], s.b, c.imu_delay, out[ROW_Q : ROW_Q + 4])
+    report_attitude_into(s, c, sample[:3], out[ROW_Q : ROW_Q + 4])
     copy_into(out[ROW_BIAS : ROW_BIAS + 3], s.b)
     # The Euler angles are made from q when first read (:func:`euler_of_row`): three
     # atan2 and a hypot, 5 % of an online step that a caller reading q, as a filter

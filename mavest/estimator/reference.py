@@ -375,6 +375,8 @@ class ReferenceFilter:
         mag = np.full(3, math.nan) if mag is None else np.asarray(mag, dtype=float)
         if not (math.isfinite(t) and np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
             raise ValueError(f"t = {t}: a non-finite sample is outside the reference's scope")
+        if np.any(np.abs(gyro) >= c.gyro_clip):
+            raise ValueError(f"t = {t}: a clipped gyroscope is outside the reference's scope")
         report = self.report
         report.accel_used = report.mag_used = report.at_rest = False
         report.flags = report.iterations = 0
@@ -386,8 +388,6 @@ class ReferenceFilter:
         dt = t - self.t
         if not 0.0 < dt <= c.max_dt:
             raise ValueError(f"t = {t}: Δt = {dt} s is outside the reference's scope")
-        if np.any(np.abs(gyro) >= c.gyro_clip):
-            raise ValueError(f"t = {t}: a clipped gyroscope is outside the reference's scope")
         self.predict(gyro, dt)
         self.t = t
         primed_now = False
@@ -425,7 +425,8 @@ class ReferenceFilter:
         cov[0, 0] += self.config.accel_alignment_sigma**2  # (left error: δθ in the world)
         cov[1, 1] += self.config.accel_alignment_sigma**2
         q = self.q.copy()
-        if self.config.imu_delay:
+        # (not the placeholder before the filter starts: it is no attitude of the IMU's)
+        if self.config.imu_delay and not self.report.flags & StepFlags.NOT_INITIALISED:
             turn = Rotation.from_rotvec((gyro - self.b) * self.config.imu_delay)
             lead = Rotation.from_quat(np.roll(q, -1)) * turn  # (scipy's x, y, z, w)
             led = np.roll(lead.as_quat(), 1)

@@ -419,8 +419,12 @@ def _fused_blocks(
     after_q, after_b, after_P = np.zeros(4), np.zeros(3), np.zeros((6, 6))
     for lo, hi in _backward_blocks(n):
         forward = forward_rows(lo, hi)
+        # The rows with an estimate of their own taken back to the filter's state; the
+        # others, and those not fused, are given back as reported, bit for bit.
+        own = np.flatnonzero(has_forward[lo:hi])
         if delay:
-            forward.q[:] = lead(forward.q, gyro[lo:hi], forward.bias, -delay)
+            reported = forward.q.copy()
+            forward.q[own] = lead(forward.q[own], gyro[lo + own], forward.bias[own], -delay)
         add_alignment(forward.q, -alignment, right, forward.cov)
         order = np.arange(hi - 1, lo - 1, -1)
         # the gyro sample that covers (t_k, t_k+1] is t_k+1's: the backward pass,
@@ -475,7 +479,8 @@ def _fused_blocks(
         after_q, after_b, after_P = out.q[-1].copy(), out.bias[-1].copy(), out.cov[-1].copy()
         add_alignment(forward.q, alignment, right, forward.cov)
         if delay:
-            forward.q[:] = lead(forward.q, gyro[lo:hi], forward.bias, delay)
+            forward.q[own] = lead(forward.q[own], gyro[lo + own], forward.bias[own], delay)
+            forward.q[~fused] = reported[~fused]
         yield lo, forward
 
 

@@ -77,6 +77,10 @@ def peer_led(q: np.ndarray, gyro: np.ndarray, delay: float) -> np.ndarray:
     (``EstimatorConfig.imu_delay``), by the gyro's rate: what the peer would report with
     mavest's delay, which it has no setting for. (A peer's bias is left in the rate: on
     BROAD it is under 0.01 rad/s, which moves a 3 ms lead by under 0.002°.)"""
+    q = np.ascontiguousarray(q, dtype=np.float64)
+    gyro = np.ascontiguousarray(gyro, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] != 4 or gyro.shape != (q.shape[0], 3):
+        raise ValueError(f"q must be (N, 4) and gyro (N, 3), got {q.shape} and {gyro.shape}")
     return lead(q, gyro, np.zeros_like(gyro), delay)
 
 

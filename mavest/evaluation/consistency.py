@@ -26,6 +26,7 @@ from mavest._jit import kernel
 from mavest.estimator.charts import chart_quat_into, local_into
 from mavest.estimator.config import CHARTS, ERROR_SIDES, EstimatorConfig
 from mavest.estimator.estimator import Estimator
+from mavest.estimator.frames import lead
 from mavest.estimator.smoother import forward_accel, smooth_forward
 from mavest.evaluation.metrics import attitude_errors
 from mavest.sim.kinematic import ImuNoise, Motion, SimulatedImu, earth_field, simulate
@@ -154,7 +155,10 @@ def run_once(
     chart_index = CHARTS.index(config.chart)
     error_rotation = np.empty(4)
     chart_quat_into(delta, chart_index, error_rotation)
-    q0 = so3.quat_multiply(so3.quat_conjugate(error_rotation), data.q_true[0])
+    # The filter's state is the IMU's attitude, imu_delay before the truth it reports
+    # against (docs/design.md#the-imus-delay): its start is the truth taken back by it.
+    truth0 = lead(data.q_true[:1], data.gyro[:1], data.bias_true[:1], -config.imu_delay)[0]
+    q0 = so3.quat_multiply(so3.quat_conjugate(error_rotation), truth0)
     estimator = Estimator(config)
     estimator.initialise(data.t[0], q0, np.zeros(3), P0)
     mag = data.mag[1:] if scenario.magnetometer else None

@@ -50,6 +50,12 @@ class ImuNoise:
     # filters' group delay): the truth at a time stamp is the motion this much later
     imu_delay: float = 0.0  # s
 
+    def __post_init__(self) -> None:
+        for name in self.__dataclass_fields__:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"ImuNoise.{name} must be a finite number ≥ 0, got {value}")
+
     @classmethod
     def matching(cls, config: EstimatorConfig) -> ImuNoise:
         """The noise a filter with this configuration assumes."""
