@@ -463,7 +463,16 @@ def _from_blocks(*args: object, **kwargs: object) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize(
     "case",
-    ["6d", "9d", "right_error_aligned", "measured_accel", "known_acceleration", "restart", "nan"],
+    [
+        "6d",
+        "9d",
+        "right_error_aligned",
+        "measured_accel",
+        "known_acceleration",
+        "restart",
+        "nan",
+        "delayed_nan",
+    ],
 )
 def test_smoothing_a_block_at_a_time_gives_smooth_bit_for_bit(
     case: str, monkeypatch: pytest.MonkeyPatch
@@ -471,7 +480,8 @@ def test_smoothing_a_block_at_a_time_gives_smooth_bit_for_bit(
     """smooth_blocks runs the forward pass again a block at a time instead of holding it:
     the same estimates, every field, every bit, blocks from the end to the start."""
     monkeypatch.setattr(smoother, "BLOCK", 257)  # (many blocks, one of them short)
-    data, t, gyro, accel, mag = _damaged(case if case in ("restart", "nan") else "none")
+    damage = {"restart": "restart", "nan": "nan", "delayed_nan": "nan"}.get(case, "none")
+    data, t, gyro, accel, mag = _damaged(damage)
     config, linear = None, None
     if case == "6d":
         mag = None
@@ -479,6 +489,8 @@ def test_smoothing_a_block_at_a_time_gives_smooth_bit_for_bit(
         config = EstimatorConfig(error="right", chart="exp", accel_alignment_sigma=0.004)
     elif case == "measured_accel":
         config = EstimatorConfig(smooth_accel_time=0.0)
+    elif case == "delayed_nan":  # (the start of the backward pass taken back by the delay)
+        config = EstimatorConfig(imu_delay=0.0025)
     elif case == "known_acceleration":
         linear = np.full_like(accel, np.nan)
         linear[::10] = data.linear_accel[::10]
@@ -808,7 +820,7 @@ def test_averaging_time_is_chosen_on_one_half_and_reported_on_the_other() -> Non
     """tools/tune_smooth.py: the choice is the tuning half's best mean, and the row
     reports the other half only, with the paired per-trial differences, against the
     peer as it is and carried forward by the same delay."""
-    from mavest.datasets.broad import halves
+    from mavest.datasets.broad import halves, lowest_mean
     from mavest.evaluation.report import paired
 
     tool = load_tool("tune_smooth")
@@ -819,7 +831,7 @@ def test_averaging_time_is_chosen_on_one_half_and_reported_on_the_other() -> Non
     }
     a, b = halves(["02", "03", "05", "07"])
     assert (a, b) == ([0, 2], [1, 3])
-    assert tool.choose(table, a) == (0.25, 0.002) and tool.choose(table, b) == (0.5, 0.0)
+    assert lowest_mean(table, a) == (0.25, 0.002) and lowest_mean(table, b) == (0.5, 0.0)
     offline = {0.0: [3.0, 3.0, 3.0, 3.0], 0.002: [2.0, 4.0, 2.0, 3.0]}
     (row,) = tool.held_out_rows(table, offline, [("A", "B", b, (0.25, 0.002))])
     assert "| A → B | 0.25 s, 2 ms | 3.500° / 3.000° / 3.000° (1.17×) |" in row

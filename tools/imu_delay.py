@@ -3,17 +3,19 @@
     .venv/bin/python tools/imu_delay.py [--quick] [--results [FILE]]
 
 Each filter is run once per trial on the samples as recorded (6-D: gyroscope and
-accelerometer) and its attitude is carried forward by each delay τ of :data:`GRID`,
-q ⊗ Exp((ω − b) τ), as ``EstimatorConfig.imu_delay`` carries mavest's
+accelerometer) and its attitude is carried forward by each delay τ of
+:data:`mavest.datasets.broad.DELAYS`, q ⊗ Exp((ω − b) τ), as ``EstimatorConfig.imu_delay``
+carries mavest's
 (:func:`mavest.estimator.frames.lead`; a peer's with the gyro's rate,
 :func:`mavest.evaluation.accuracy.peer_led`). The mean 6-D inclination RMSE over the
 trials, per delay, for mavest's filter and smoother (defaults) and for VQF and offline
 VQF: if the lag is the data's, every filter's error is least at the same delay, and
 carrying them all forward by it leaves their differences to what they estimate.
 
-Then the delay is chosen as ``tools/tune.py`` and ``tools/tune_smooth.py`` choose it,
-on one half of the trials (:func:`mavest.datasets.broad.halves`), by mavest's mean
-inclination, and each filter reported on the other half with it: the paired
+Then the delay is chosen as ``tools/tune_smooth.py`` chooses it, on one half of the
+trials (:func:`mavest.datasets.broad.halves`), by the mean inclination of mavest's
+filter for the filter rows and of its smoother for the smoother rows, and each filter
+reported on the other half with it: the paired
 per-trial differences of mavest against each peer carried forward alike. Figures on
 the half a delay was chosen on are not results. ``--results`` writes the tables as the
 IMU delay section of docs/results.md (or FILE).
@@ -32,13 +34,19 @@ import sys
 import time
 from collections.abc import Sequence
 
-from mavest.datasets.broad import BroadTrial, halves, halves_named, trials_to_split
+from mavest.datasets.broad import (
+    DELAYS,
+    BroadTrial,
+    halves,
+    halves_named,
+    lowest_mean,
+    trials_to_split,
+)
 from mavest.evaluation import report
 from mavest.evaluation.accuracy import carried_runs
 from mavest.evaluation.metrics import rmse_deg
 
 TITLE = "IMU delay"
-GRID: tuple[float, ...] = tuple(k * 5e-4 for k in range(11))  # s: 0 to 5 ms
 QUICK_TRIALS = 4
 
 
@@ -47,8 +55,8 @@ def score(trials: Sequence[BroadTrial]) -> dict[str, dict[float, list[float]]]:
     table: dict[str, dict[float, list[float]]] = {}
     for trial in trials:
         for name, carried in carried_runs(trial).items():
-            per_delay = table.setdefault(name, {d: [] for d in GRID})
-            for delay in GRID:
+            per_delay = table.setdefault(name, {d: [] for d in DELAYS})
+            for delay in DELAYS:
                 errors = rmse_deg(carried(delay), trial.truth_q, trial.movement)
                 per_delay[delay].append(errors["inclination"])
         print(f"imu_delay: {trial.name}", file=sys.stderr, flush=True)
@@ -61,8 +69,8 @@ def curve_table(table: dict[str, dict[float, list[float]]]) -> str:
         "| delay | " + " | ".join(names) + " |",
         "|---" * (len(names) + 1) + "|",
     ]
-    best = {name: min(GRID, key=lambda d: statistics.fmean(table[name][d])) for name in names}
-    for delay in GRID:
+    best = {name: min(DELAYS, key=lambda d: statistics.fmean(table[name][d])) for name in names}
+    for delay in DELAYS:
         cells = []
         for name in names:
             cell = f"{statistics.fmean(table[name][delay]):.3f}°"
@@ -74,13 +82,13 @@ def curve_table(table: dict[str, dict[float, list[float]]]) -> str:
 def held_out_table(table: dict[str, dict[float, list[float]]], a: list[int], b: list[int]) -> str:
     lines = [
         "| tuned on → reported on | mavest's delay, by | ours | peer | ours / peer "
-        "| carried forward alike: ours − peer, paired | as published (peer at 0 ms): "
+        "| carried forward alike: ours − peer, paired | against the peer as it runs (0 ms): "
         "ours / peer |",
         "|---|---|---|---|---|---|---|",
     ]
     for tuned, reported, on, subset in (("A", "B", a, b), ("B", "A", b, a)):
         for ours, peer in (("mavest", "VQF"), ("mavest.smooth", "offline VQF")):
-            delay = min(GRID, key=lambda d: statistics.fmean(table[ours][d][i] for i in on))
+            delay = lowest_mean(table[ours], on)
             mine = [table[ours][delay][i] for i in subset]
             theirs = [table[peer][delay][i] for i in subset]
             raw = [table[peer][0.0][i] for i in subset]
@@ -122,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(curve_table(table))
         print(
-            "\nHeld out: the delay chosen on one half by mavest's mean ("
+            "\nHeld out: the delay chosen on one half by the mean of the row's mavest "
+            "filter or smoother ("
             + halves_named([t.name for t in trials], a, b)
             + "), every figure on the other half, each peer carried forward by the same "
             "delay; the last column sets ours against the peer as it is.\n"

@@ -72,6 +72,7 @@ from mavest.datasets.broad import (
     BroadTrial,
     halves,
     halves_named,
+    lowest_mean,
     trials_to_split,
     tuned_on,
 )
@@ -236,10 +237,6 @@ def choose_6d(table: dict[Values, list[TrialScore]], subset: Sequence[int]) -> V
     return max(competing, key=merit)
 
 
-def choose_mag(table: dict[float, list[float]], subset: Sequence[int]) -> float:
-    return min(table, key=lambda k: float(np.mean([table[k][i] for i in subset])))
-
-
 @dataclass(frozen=True)
 class Direction:
     tuned_on: str
@@ -350,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def mag_for(values: Values, subset: Sequence[int]) -> float:
         per = {k[1]: v for k, v in table_mag.items() if k[0] == values}
-        return choose_mag(per, subset)
+        return lowest_mean(per, subset)
 
     directions = [
         Direction("A", "B", b, choices["A"], mag_for(choices["A"], a)),

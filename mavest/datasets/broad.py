@@ -46,15 +46,19 @@ from __future__ import annotations
 
 import hashlib
 import itertools
+import statistics
 import sys
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mavest.datasets import require_data
+
+_Key = TypeVar("_Key")
 
 __all__ = [
     "BROAD_RATE_HZ",
@@ -114,11 +118,10 @@ TUNED_ON = frozenset(
 )
 
 
-#: The IMU delays (s) tools/tune_smooth.py chooses ``imu_delay`` from on a half of the trials:
-#: over all 22 shared trials, mavest's, its smoother's, VQF's and offline VQF's
-#: attitudes are nearest the optical truth carried forward by about 2.5 ms
-#: (tools/imu_delay.py, docs/design.md#the-imus-delay).
-DELAYS: tuple[float, ...] = (0.0, 0.001, 0.002, 0.0025, 0.003)
+#: The IMU delays (s) the tools choose ``imu_delay`` from on a half of the trials: every
+#: 0.5 ms up to 5 ms, a sample and a half at BROAD's 286 Hz, beyond any IMU's own filter
+#: delay at its usual bandwidths.
+DELAYS: tuple[float, ...] = tuple(k * 5e-4 for k in range(11))
 
 
 def tuned_on(name: str) -> bool:
@@ -216,6 +219,13 @@ def halves(trials: Sequence[object]) -> tuple[list[int], list[int]]:
     choose parameters on one and report on the other: alternate trials, A (1st, 3rd, …)
     and B (2nd, 4th, …), so that each half holds every kind of motion and disturbance."""
     return list(range(0, len(trials), 2)), list(range(1, len(trials), 2))
+
+
+def lowest_mean(table: Mapping[_Key, Sequence[float]], subset: Sequence[int]) -> _Key:
+    """The choice of ``table`` (per choice, a score per trial; lower is better) with the
+    lowest mean over the trials of ``subset`` (ties: the first): how a parameter is
+    chosen on one of :func:`halves`."""
+    return min(table, key=lambda k: statistics.fmean(table[k][i] for i in subset))
 
 
 def trial_labels(names: Sequence[str]) -> list[str]:
