@@ -28,7 +28,6 @@ Smoothing consistency section.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import os
 import sys
@@ -119,9 +118,7 @@ def format_table(scenario: Scenario, labels: list[str], summaries: list[Summary]
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--runs", type=int, default=100, help="runs per scenario (default 100)")
     parser.add_argument("--scenario", action="append", choices=[s.name for s in SCENARIOS])
     parser.add_argument(

@@ -35,7 +35,6 @@ line, when BROAD or h5py is missing.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import importlib
 import math
@@ -208,7 +207,7 @@ def broad_recordings(prefixes: Sequence[str] | None, split: str, quick: bool) ->
 
 def _warn(text: str) -> None:
     """One line on an input left out; the run goes on."""
-    print(f"covariance: {text}", file=sys.stderr, flush=True)
+    report.progress("covariance", text)
 
 
 def simulated_recordings(
@@ -426,11 +425,7 @@ def summary_table(grouped: dict[Key, list[tuple[Scored, Calibration]]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument(
         "--parts", nargs="+", choices=PARTS, default=list(PARTS), help="what to run (default: all)"
     )

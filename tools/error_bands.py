@@ -30,7 +30,7 @@ exit 2. ``--results`` writes the tables as the Error bands section of docs/resul
 
 from __future__ import annotations
 
-import argparse
+import functools
 import itertools
 import math
 import statistics
@@ -102,7 +102,7 @@ def score(
                 tilt = tilt_heading_errors(carried(delay), trial.truth_q).tilt
                 rms = band_rms(np.degrees(tilt), trial.movement, trial.rate)
                 table[delay].setdefault(name, []).append(rms)
-        print(f"error_bands: {trial.name}", file=sys.stderr, flush=True)
+        report.progress("error_bands", trial.name)
     return table
 
 
@@ -138,11 +138,7 @@ def paired_table(per_filter: dict[str, list[list[float]]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument(
         "--delay", type=float, default=DELAY, help="ms the attitudes are carried forward by"
     )
@@ -153,8 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--delay must be 0–100 ms, got {args.delay}")
     start = time.perf_counter()
 
-    def say(line: str) -> None:
-        print(f"error_bands: {line}", file=sys.stderr, flush=True)
+    say = functools.partial(report.progress, "error_bands")
 
     trials = trials_to_split(say, QUICK_TRIALS if args.quick else None)
     if trials is None:

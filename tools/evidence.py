@@ -52,7 +52,6 @@ is missing.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import importlib
 import sys
@@ -202,7 +201,7 @@ def still_spans(relative: str, log: AutopilotLog, whole: bool = True) -> list[Se
 
 def _warn(text: str) -> None:
     """One line on a problem with an input; the run goes on."""
-    print(f"evidence: {text}", file=sys.stderr, flush=True)
+    report.progress("evidence", text)
 
 
 class MissingInputError(Exception):
@@ -986,11 +985,7 @@ def _check_packages(parts: Sequence[str], filters: Filters) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--quick", action="store_true", help="without Madgwick and Mahony")
     parser.add_argument(
         "--offline", action="store_true", help="also mavest smoothed and offline VQF"

@@ -22,7 +22,6 @@ over the 1-worker fleet's (a machine of N free cores approaches N). ``--quick``:
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import sys
 import tempfile
@@ -117,11 +116,7 @@ def print_table(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--logs", type=int, default=8, help="how many logs (default 8)")
     parser.add_argument("--seconds", type=float, default=60.0, help="each flight's length")
     parser.add_argument("--rate", type=float, default=400.0, help="IMU rate, Hz")

@@ -28,7 +28,7 @@ exit 2.
 
 from __future__ import annotations
 
-import argparse
+import functools
 import statistics
 import sys
 import time
@@ -59,7 +59,7 @@ def score(trials: Sequence[BroadTrial]) -> dict[str, dict[float, list[float]]]:
             for delay in DELAYS:
                 errors = rmse_deg(carried(delay), trial.truth_q, trial.movement)
                 per_delay[delay].append(errors["inclination"])
-        print(f"imu_delay: {trial.name}", file=sys.stderr, flush=True)
+        report.progress("imu_delay", trial.name)
     return table
 
 
@@ -103,18 +103,13 @@ def held_out_table(table: dict[str, dict[float, list[float]]], a: list[int], b: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--quick", action="store_true", help="four trials")
     report.add_results_option(parser)
     args = parser.parse_args(argv)
     start = time.perf_counter()
 
-    def say(line: str) -> None:
-        print(f"imu_delay: {line}", file=sys.stderr, flush=True)
+    say = functools.partial(report.progress, "imu_delay")
 
     trials = trials_to_split(say, QUICK_TRIALS if args.quick else None)
     if trials is None:

@@ -34,7 +34,7 @@ line, when BROAD or h5py is missing or no trial is left.
 
 from __future__ import annotations
 
-import argparse
+import functools
 import importlib
 import math
 import sys
@@ -148,11 +148,7 @@ def table(priors: Sequence[TrialPrior], tau: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument(
         "--trials", nargs="+", metavar="PREFIX", help="only these BROAD trials (name prefixes)"
     )
@@ -172,8 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     tau = EstimatorConfig().accel_lowpass_time
 
-    def say(line: str) -> None:
-        print(f"motion_prior: {line}", file=sys.stderr, flush=True)
+    say = functools.partial(report.progress, "motion_prior")
 
     priors = [measure(trial, tau) for trial in load_trials(paths, say, scored_only=True)]
     if not priors:

@@ -17,7 +17,6 @@ the Online overhead section of docs/results.md (or FILE).
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 
@@ -43,11 +42,7 @@ def _estimator(python_path: bool) -> Estimator:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=10.0, help="flight length (s)")
     parser.add_argument("--rate", type=float, default=200.0, help="IMU rate (Hz)")
     parser.add_argument("--rounds", type=int, default=25, help="interleaved rounds")

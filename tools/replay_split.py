@@ -46,7 +46,6 @@ docs/results.md (or FILE).
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import subprocess
@@ -425,11 +424,7 @@ def print_tables(measured: Rounds, log: Path, seconds: float, rounds: int) -> No
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=300.0, help="the log's flight, s")
     parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds")
     report.add_results_option(parser)

@@ -592,7 +592,7 @@ def rerun_instructions(seconds: float, workdir: Path, jobs: int) -> dict[str, fl
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=30.0, help="live stream length")
     parser.add_argument("--rate", type=float, default=1000.0, help="live IMU rate, Hz")
     parser.add_argument(

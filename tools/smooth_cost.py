@@ -111,11 +111,7 @@ def seconds_of(run: Callable[[], object], runs: int = 2) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=600.0, help="flight length (s)")
     parser.add_argument("--rate", type=float, default=1000.0, help="IMU rate (Hz)")
     parser.add_argument("--quick", action="store_true", help="a 140 s flight and replay")

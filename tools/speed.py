@@ -20,7 +20,6 @@ excluded (the numba cache is warmed first). One table per ``--rate``;
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -147,11 +146,7 @@ def print_table(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=60.0, help="flight length (s)")
     parser.add_argument(
         "--rate", type=float, nargs="+", default=[200.0], help="IMU rates (Hz), one table each"

@@ -18,7 +18,6 @@ as the Start in motion section of docs/results.md (or FILE).
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
 import sys
@@ -126,11 +125,7 @@ def _names(results: list[Start]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--scenario", action="append", choices=[s.name for s in SCENARIOS])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument(

@@ -52,8 +52,8 @@ exit 2.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
+import functools
 import itertools
 import math
 import statistics
@@ -308,7 +308,7 @@ def per_trial_table(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = report.tool_parser(__doc__)
     parser.add_argument(
         "--profile", choices=list(PROFILES), default="adaptive", help="which (default: adaptive)"
     )
@@ -396,8 +396,7 @@ def _load(quick: bool) -> list[BroadTrial] | None:
     """The trials to tune on (the first :data:`QUICK_TRIALS` usable ones with
     ``quick``), or None after one line saying why there are too few to split."""
 
-    def say(line: str) -> None:
-        print(f"tune: {line}", file=sys.stderr, flush=True)
+    say = functools.partial(report.progress, "tune")
 
     return trials_to_split(say, QUICK_TRIALS if quick else None)
 

@@ -30,7 +30,7 @@ exit 2.
 
 from __future__ import annotations
 
-import argparse
+import functools
 import statistics
 import sys
 import time
@@ -169,11 +169,7 @@ def per_trial_rows(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument(
         "--quick", action="store_true", help="two time constants and delays, four trials"
     )
@@ -250,8 +246,7 @@ def _load(quick: bool) -> list[BroadTrial] | None:
     """The trials to tune on (the first :data:`QUICK_TRIALS` usable ones with
     ``quick``), or None after one line saying why there are too few to split."""
 
-    def say(line: str) -> None:
-        print(f"tune_smooth: {line}", file=sys.stderr, flush=True)
+    say = functools.partial(report.progress, "tune_smooth")
 
     return trials_to_split(say, QUICK_TRIALS if quick else None)
 

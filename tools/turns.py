@@ -18,7 +18,6 @@ the table (as Markdown) as the Tilt in turns section of docs/results.md (or FILE
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import sys
 import tempfile
@@ -35,11 +34,7 @@ RATE = 400.0  # Hz, as `make demo`
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__.split("\n\n", 1)[1],
-    )
+    parser = report.tool_parser(__doc__)
     parser.add_argument("--seconds", type=float, default=120.0, help="flight length (s)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
     parser.add_argument(

@@ -121,6 +121,21 @@ def paired(ours: Sequence[float], theirs: Sequence[float], unit: str = "°") -> 
     return f"better on {better} of {len(differences)}, median difference {median:+.3f}{unit}"
 
 
+def tool_parser(doc: str) -> argparse.ArgumentParser:
+    """A tool's argument parser from its module docstring, which opens with a line that
+    says what the tool does and a blank line: that line is the description, the rest
+    the epilog (usage, what it measures, how), shown by ``--help`` as written."""
+    title, _, rest = doc.partition("\n\n")
+    return argparse.ArgumentParser(
+        description=title, formatter_class=argparse.RawDescriptionHelpFormatter, epilog=rest
+    )
+
+
+def progress(tool: str, line: str) -> None:
+    """A line of a tool's progress or refusal, on stderr: "tool: line"."""
+    print(f"{tool}: {line}", file=sys.stderr, flush=True)
+
+
 def add_results_option(parser: argparse.ArgumentParser) -> None:
     """``--results [FILE]``, the same in every tool."""
     parser.add_argument(
