@@ -50,4 +50,10 @@ def test_two_tones_add_up_in_quadrature_and_unknown_truth_is_not_scored() -> Non
     assert clean[4] == pytest.approx(0.5 / math.sqrt(2.0), rel=0.02)
     assert clean[-1] == pytest.approx(math.sqrt((1.0 + 0.25) / 2.0), rel=0.01)
     np.testing.assert_allclose(with_holes, clean, rtol=0.02, atol=0.005)
+    # where the truth is known, a hole is the filter's failure: no figure hides it
+    truth = np.ones(t.shape[0], dtype=bool)
+    truth[50_000:50_050] = False
+    assert bands.band_rms(holed, scored, RATE, truth)[-1] == pytest.approx(clean[-1], rel=0.01)
+    failed = bands.band_rms(holed, scored, RATE, np.ones(t.shape[0], dtype=bool))
+    assert all(math.isnan(r) for r in failed)
     assert all(math.isnan(r) for r in bands.band_rms(error, np.zeros_like(scored), RATE))

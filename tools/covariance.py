@@ -470,7 +470,7 @@ def main(argv: list[str] | None = None) -> int:
             seeds = args.seeds[:1] if args.quick else args.seeds
             recordings += simulated_recordings(args.scenario, seeds, args.quick)
     except MissingInputError as error:
-        print(f"covariance: {error}", file=sys.stderr)
+        report.progress("covariance", str(error))
         return 2
     entries = [e for e in available if not args.estimator or e.name in args.estimator]
     results = run_all(recordings, entries)

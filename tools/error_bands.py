@@ -66,15 +66,23 @@ def band_label(lo: float, hi: float) -> str:
 BANDS = tuple(band_label(lo, hi) for lo, hi in itertools.pairwise(EDGES))
 
 
-def band_rms(error: np.ndarray, scored: np.ndarray, rate: float) -> list[float]:
+def band_rms(
+    error: np.ndarray, scored: np.ndarray, rate: float, truth: np.ndarray | None = None
+) -> list[float]:
     """The RMS (in the units of ``error``) over the ``scored`` samples of the error (N,
-    k), whole and in each band of :data:`EDGES` (the whole last). NaN rows (no truth)
-    are bridged by linear interpolation before filtering and never scored."""
+    k), whole and in each band of :data:`EDGES` (the whole last). The rows without a
+    truth (``truth`` False; by default the rows whose error is not finite) are bridged by
+    linear interpolation before filtering and never scored; an error that is not finite
+    where there is a truth (a filter's failed estimate) makes every figure NaN, as
+    :func:`mavest.evaluation.metrics.rmse_deg` does."""
     error = np.asarray(error, dtype=np.float64).reshape(error.shape[0], -1)
     known = np.all(np.isfinite(error), axis=1)
+    nothing = [math.nan] * (len(BANDS) + 1)
+    if truth is not None and np.any(truth & ~known):
+        return nothing
     scored = scored & known
     if not scored.any():
-        return [math.nan] * (len(BANDS) + 1)
+        return nothing
     index = np.arange(error.shape[0])
     bridged = np.column_stack([np.interp(index, index[known], column[known]) for column in error.T])
     out = []
@@ -100,7 +108,8 @@ def score(
         for name, carried in carried_runs(trial).items():
             for delay in delays:
                 tilt = tilt_heading_errors(carried(delay), trial.truth_q).tilt
-                rms = band_rms(np.degrees(tilt), trial.movement, trial.rate)
+                truth = np.all(np.isfinite(trial.truth_q), axis=1)
+                rms = band_rms(np.degrees(tilt), trial.movement, trial.rate, truth)
                 table[delay].setdefault(name, []).append(rms)
         report.progress("error_bands", trial.name)
     return table

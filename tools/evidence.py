@@ -1020,7 +1020,7 @@ def main(argv: list[str] | None = None) -> int:
         trials = load_broad(args.trials) if "broad" in args.parts else None
         loaded_logs = load_logs() if "logs" in args.parts else None
     except MissingInputError as error:
-        print(f"evidence: {error}", file=sys.stderr)
+        report.progress("evidence", str(error))
         return 2
 
     # the error curves are NaN where the truth is lost (drawn as gaps); the scoring skips

@@ -23,7 +23,6 @@ over the 1-worker fleet's (a machine of N free cores approaches N). ``--quick``:
 from __future__ import annotations
 
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -133,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             figures = measure(tasks)
         except RuntimeError as error:
-            print(f"fleet_speed: {error}", file=sys.stderr)
+            report.progress("fleet_speed", str(error))
             return 2
     with report.results_section(args.results, "Fleet", __file__, argv, __doc__):
         print_table(figures, args.logs, args.seconds, args.rate, markdown)

@@ -161,10 +161,10 @@ def main(argv: list[str] | None = None) -> int:
         print("motion_prior: the package h5py (dev extra) is needed to read BROAD", file=sys.stderr)
         return 2
     except FileNotFoundError as error:
-        print(f"motion_prior: {error}", file=sys.stderr)
+        report.progress("motion_prior", str(error))
         return 2
     if not paths:
-        print(f"motion_prior: no BROAD trial in {DATA_ENV_VAR}'s broad/", file=sys.stderr)
+        report.progress("motion_prior", f"no BROAD trial in {DATA_ENV_VAR}'s broad/")
         return 2
     tau = EstimatorConfig().accel_lowpass_time
 

@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rows = [(path, *measure(path, args.rounds, not args.no_replay)) for path in logs]
     except (OnboardLogError, RuntimeError) as error:
-        print(f"onboard_speed: {error}", file=sys.stderr)
+        report.progress("onboard_speed", str(error))
         return 2
     with report.results_section(args.results, "Onboard logs", __file__, argv, __doc__):
         print_table(rows, args.rounds, markdown)

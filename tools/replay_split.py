@@ -440,7 +440,7 @@ def main(argv: list[str] | None = None) -> int:
             measured = measure(log, short, workdir, args.rounds)
             check(measured, workdir / "out.tlog")
         except RuntimeError as error:
-            print(f"replay_split: {error}", file=sys.stderr)
+            report.progress("replay_split", str(error))
             return 2
         with report.results_section(args.results, TITLE, __file__, argv, __doc__):
             print_tables(measured, log, args.seconds, args.rounds)

@@ -171,7 +171,7 @@ def per_trial_rows(
 def main(argv: list[str] | None = None) -> int:
     parser = report.tool_parser(__doc__)
     parser.add_argument(
-        "--quick", action="store_true", help="two time constants and delays, four trials"
+        "--quick", action="store_true", help="two time constants, three delays, four trials"
     )
     report.add_results_option(parser)
     args = parser.parse_args(argv)

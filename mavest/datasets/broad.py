@@ -64,14 +64,17 @@ __all__ = [
     "BROAD_RATE_HZ",
     "C_IMU_FRD",
     "C_NED_ENU",
+    "DELAYS",
     "TUNED_ON",
     "BroadFileError",
     "BroadTrial",
     "broad_dir",
     "halves",
+    "halves_named",
     "list_trials",
     "load_trial",
     "load_trials",
+    "lowest_mean",
     "trial_labels",
     "trials_to_split",
     "truth_from_opt_quat",
@@ -121,7 +124,7 @@ TUNED_ON = frozenset(
 #: The IMU delays (s) the tools choose ``imu_delay`` from on a half of the trials: every
 #: 0.5 ms up to 5 ms, a sample and a half at BROAD's 286 Hz, beyond any IMU's own filter
 #: delay at its usual bandwidths.
-DELAYS: tuple[float, ...] = tuple(k * 5e-4 for k in range(11))
+DELAYS: tuple[float, ...] = tuple(round(k * 5e-4, 4) for k in range(11))
 
 
 def tuned_on(name: str) -> bool:

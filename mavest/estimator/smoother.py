@@ -387,7 +387,7 @@ def _fused_blocks(
     # Both passes' states are the attitude ``imu_delay`` before each time stamp (each
     # takes the samples as they are). The forward pass's reported attitudes are taken
     # back to its state's, fused there, and the smoothed one carried forward as the
-    # filter carries its own (frames.lead_into).
+    # filter carries its own (frames.lead_into, as frames.report_attitude_into does).
     delay = config.imu_delay
     backward = Estimator(
         config.replace(
@@ -420,7 +420,8 @@ def _fused_blocks(
     for lo, hi in _backward_blocks(n):
         forward = forward_rows(lo, hi)
         # The rows with an estimate of their own taken back to the filter's state; the
-        # others, and those not fused, are given back as reported, bit for bit.
+        # attitudes of the others, and of those not fused, given back as reported, bit
+        # for bit (their covariance, the alignment taken off and put back, to rounding).
         own = np.flatnonzero(has_forward[lo:hi])
         if delay:
             reported = forward.q.copy()

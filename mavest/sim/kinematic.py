@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from mavest import so3
 from mavest._jit import kernel
-from mavest.estimator.config import STANDARD_GRAVITY, EstimatorConfig
+from mavest.estimator.config import STANDARD_GRAVITY, EstimatorConfig, require_number
 
 # The Earth's field near Zürich (47.4° N, 8.5° E; WMM 2025, rounded), NED, µT:
 # 48 µT, dip 63°, declination 1.9° east.
@@ -51,10 +51,8 @@ class ImuNoise:
     imu_delay: float = 0.0  # s
 
     def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"ImuNoise.{name} must be a finite number ≥ 0, got {value}")
+        for name in self.__dataclass_fields__:  # (the configuration's rule: ConfigError)
+            require_number(f"ImuNoise.{name}", getattr(self, name), zero=True)
 
     @classmethod
     def matching(cls, config: EstimatorConfig) -> ImuNoise:
