@@ -24,6 +24,7 @@ from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
 from mavest.estimator.config import MAX_ANGULAR_RATE, EstimatorConfig, config_or_default
 from mavest.estimator.frames import add_reported_alignment, report_attitude_into
+from mavest.estimator.gyro_unit import gyro_unit_problem
 from mavest.estimator.heading import turn_heading
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.linalg import copy_into, copy_matrix_into
@@ -645,15 +646,31 @@ def estimate(
 ) -> EstimateSeries:
     """Estimate attitude and gyro bias for a whole recording (see :class:`Estimator`).
 
-    Raises :class:`InputError` when nothing would be estimated, every sample
-    NOT_INITIALISED: the accelerometer is in another unit than m/s² (its norm over the
-    first samples is g in g, mg or mm/s²), or no sample could start the estimate (the
-    line says why, e.g. an accelerometer never near g, a gyro never finite).
+    Raises :class:`InputError` when the gyroscope is not in rad/s (it turns gravity
+    57× or 1000× as far as the accelerometer sees it turn: :mod:`.gyro_unit`), or when
+    nothing would be estimated, every sample NOT_INITIALISED: the accelerometer is in
+    another unit than m/s² (its norm over the first samples is g in g, mg or mm/s²), or
+    no sample could start the estimate (the line says why, e.g. an accelerometer never
+    near g, a gyro never finite).
     """
+    config = config_or_default(config)
+    t, gyro, accel, mag, linear_accel = batch_inputs(t, gyro, accel, mag, linear_accel)
+    refuse_wrong_gyro_unit(t, gyro, accel, config)
     estimator = Estimator(config)
     series = estimator.update_batch(t, gyro, accel, mag, linear_accel)
     refuse_wrong_unit(estimator, series.flags)
     return series
+
+
+def refuse_wrong_gyro_unit(
+    t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, config: EstimatorConfig
+) -> None:
+    """:class:`InputError` if a batch's gyroscope is not in rad/s, as its accelerometer
+    sees it (:func:`.gyro_unit.gyro_unit_problem`): the estimate would be meaningless,
+    every accelerometer sample rejected, and no flag would say why."""
+    problem = gyro_unit_problem(t, gyro, accel, config.gravity, config.max_dt)
+    if problem is not None:
+        raise InputError(problem)
 
 
 def refuse_wrong_unit(estimator: Estimator, flags: np.ndarray) -> None:

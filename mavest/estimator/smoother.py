@@ -40,6 +40,7 @@ from mavest.estimator.estimator import (
     InputError,
     batch_inputs,
     estimate,
+    refuse_wrong_gyro_unit,
     refuse_wrong_unit,
 )
 from mavest.estimator.frames import add_alignment, lead
@@ -95,6 +96,7 @@ def smooth(
     """
     config = config_or_default(config)
     t, gyro, accel, mag, linear_accel = batch_inputs(t, gyro, accel, mag, linear_accel)
+    refuse_wrong_gyro_unit(t, gyro, accel, config)
     forward = _forward_pass(
         config,
         linear_accel,
@@ -261,6 +263,7 @@ def smooth_blocks(
     """
     config = config_or_default(config)
     t, gyro, accel, mag_array, linear = batch_inputs(t, gyro, accel, mag, linear_accel)
+    refuse_wrong_gyro_unit(t, gyro, accel, config)
     forward = _forward_pass(
         config,
         linear,
