@@ -301,6 +301,27 @@ def test_an_empty_csv_is_one_line(tmp_path: Path) -> None:
         _one_line(done.stderr, "no samples")
 
 
+def test_a_gyro_in_degrees_per_second_is_one_line_and_no_table(tmp_path: Path) -> None:
+    """A CSV whose gyro is in °/s: one line naming the unit, exit 2, no table written
+    (it was read as rad/s and gave 103° of tilt error without a word)."""
+    from mavest.sim import Motion, simulate
+
+    flight = simulate(60.0, 200.0, seed=3, motion=Motion(min_period=2.0, max_period=6.0))
+    path = tmp_path / "deg.csv"
+    table = np.column_stack([flight.t, np.degrees(flight.gyro), flight.accel])
+    np.savetxt(path, table, delimiter=",", header="t,gx,gy,gz,ax,ay,az", comments="")
+    out = tmp_path / "out.csv"
+    done = subprocess.run(
+        [*MAVEST, "estimate", str(path), "-o", str(out)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 2
+    _one_line(done.stderr, "in °/s? (× 57.3) mavest takes rad/s")
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------ first run
 
 
