@@ -425,8 +425,8 @@ def _fused_blocks(
         # The rows with an estimate of their own taken back to the filter's state; the
         # attitudes of the others, and of those not fused, given back as reported, bit
         # for bit (their covariance, the alignment taken off and put back, to rounding).
-        own = np.flatnonzero(has_forward[lo:hi])
         if delay:
+            own = np.flatnonzero(has_forward[lo:hi])
             reported = forward.q.copy()
             forward.q[own] = lead(forward.q[own], gyro[lo + own], forward.bias[own], -delay)
         add_alignment(forward.q, -alignment, right, forward.cov)

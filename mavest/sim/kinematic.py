@@ -248,9 +248,14 @@ def simulate(
     dt = 1.0 / rate
     t = np.arange(n) * dt
     yaw0 = rng.uniform(-np.pi, np.pi)
-    angles0, _ = _euler_and_rates(t[:1], np.random.default_rng(seed + 1), motion, yaw0)
-    mid = t - 0.5 * dt
-    angles, rates = _euler_and_rates(mid, np.random.default_rng(seed + 1), motion, yaw0)
+
+    def motion_at(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The one motion of this seed (its own stream: the same draws every call), at
+        these times: Euler angles and their rates."""
+        return _euler_and_rates(times, np.random.default_rng(seed + 1), motion, yaw0)
+
+    angles0, _ = motion_at(t[:1])
+    angles, rates = motion_at(t - 0.5 * dt)
     omega = _body_rates(angles, rates)
 
     q = _integrate(so3.quat_from_euler_zyx(*angles0[0]), omega, dt)
@@ -285,9 +290,7 @@ def simulate(
     field_world = np.column_stack([north, east, np.full(n, field_ned[2])])
     mag = rotate_to_body(q, field_world)
     if noise.imu_delay > 0.0:
-        later, later_rates = _euler_and_rates(
-            t + 0.5 * noise.imu_delay, np.random.default_rng(seed + 1), motion, yaw0
-        )
+        later, later_rates = motion_at(t + 0.5 * noise.imu_delay)
         # (scipy's rotations, not the filter's: the truth is made independently of it)
         turn = Rotation.from_rotvec(_body_rates(later, later_rates) * noise.imu_delay)
         moved = (Rotation.from_quat(q[:, [1, 2, 3, 0]]) * turn).as_quat(canonical=True)
