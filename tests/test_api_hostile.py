@@ -262,6 +262,24 @@ def test_an_all_zero_accelerometer_is_invalid_after_initialisation_too() -> None
     assert not np.any(out.flags & StepFlags.UNHEALTHY_RESET)
 
 
+@pytest.mark.parametrize("value", [1e20, -1e4, 51.0 * G])
+def test_an_accelerometer_beyond_any_range_is_invalid_and_leaves_the_low_pass_alone(
+    value: float,
+) -> None:
+    """One such sample went into the low-pass: 1e20 held every update after it rejected
+    (ACCEL_REJECTED_NORM for the rest of a minute) and grew tilt σ to 5.8°; -1e4 cost
+    seconds of updates. It is now what a NaN sample is."""
+    t, gyro, accel = quiet(1500)
+    absurd, nan = accel.copy(), accel.copy()
+    absurd[600, 2] = value
+    nan[600] = math.nan
+    out, reference = estimate(t, gyro, absurd), estimate(t, gyro, nan)
+    assert out.flags[600] & StepFlags.ACCEL_INVALID
+    assert not np.any(out.flags & StepFlags.ACCEL_REJECTED_NORM)
+    np.testing.assert_array_equal(out.q, reference.q)
+    np.testing.assert_array_equal(out.cov, reference.cov)
+
+
 def test_rest_detection_takes_an_all_zero_accelerometer_as_none() -> None:
     """As a NaN one: not into the rest criteria's low-pass (it was, and held rest off
     for a while after)."""
@@ -283,7 +301,7 @@ def test_rest_detection_takes_an_all_zero_accelerometer_as_none() -> None:
     ("mistake", "flag", "said"),
     [
         ("ft/s²", StepFlags.ACCEL_REJECTED_NORM, "accelerometer norm not within"),
-        ("zero accel", StepFlags.ACCEL_INVALID, "accelerometer zero or not finite"),
+        ("zero accel", StepFlags.ACCEL_INVALID, "accelerometer zero, not finite or beyond"),
         ("NaN gyro", StepFlags.GYRO_INVALID, "gyro not finite"),
     ],
 )

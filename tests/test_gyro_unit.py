@@ -5,6 +5,7 @@ recording in rad/s, simulated or real."""
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -68,6 +69,19 @@ def test_gaps_and_bad_samples_are_left_out(flight) -> None:
     assert gyro_unit_problem(t, gyro, accel, G, 0.1) is not None
     gappy = flight.t + np.floor(np.arange(flight.t.shape[0]) / 20.0)  # 1 s every 20 steps
     assert turn_ratios(gappy, gyro, flight.accel, G, 0.1).shape[0] == 0
+
+
+def test_absurd_values_are_left_out_without_numpys_warnings(flight) -> None:
+    """Values near the float's limit overflowed in the norms, and numpy's warning text
+    reached the command line's stderr above mavest's own line."""
+    gyro, accel = flight.gyro.copy(), flight.accel.copy()
+    gyro[500] = [-1e308, 1e308, 0.0]
+    accel[2000:2100, 2] = -1e300
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ratios = turn_ratios(flight.t, gyro, accel, G, 0.1)
+    clean = turn_ratios(flight.t, flight.gyro, flight.accel, G, 0.1)
+    assert np.all(np.isfinite(ratios)) and 0 < clean.shape[0] - ratios.shape[0] <= 3
 
 
 def test_real_recordings_in_rad_s_are_never_refused() -> None:

@@ -22,7 +22,12 @@ from numpy.typing import ArrayLike
 from mavest import so3
 from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
-from mavest.estimator.config import MAX_ANGULAR_RATE, EstimatorConfig, config_or_default
+from mavest.estimator.config import (
+    MAX_ANGULAR_RATE,
+    MAX_SPECIFIC_FORCE,
+    EstimatorConfig,
+    config_or_default,
+)
 from mavest.estimator.frames import add_reported_alignment, report_attitude_into
 from mavest.estimator.gyro_unit import gyro_unit_problem
 from mavest.estimator.heading import turn_heading
@@ -690,7 +695,9 @@ def _why_not_initialised(flags: np.ndarray, config: EstimatorConfig) -> str:
     """Why not one of these samples started the estimate, from their flags (what
     ``recursion`` sets on a sample that could not), in one line."""
     reasons = {
-        StepFlags.ACCEL_INVALID: "accelerometer zero or not finite",
+        StepFlags.ACCEL_INVALID: (
+            f"accelerometer zero, not finite or beyond {MAX_SPECIFIC_FORCE:g} m/s²"
+        ),
         StepFlags.ACCEL_REJECTED_NORM: (
             f"accelerometer norm not within {config.accel_norm_tolerance:g} of "
             f"g = {config.gravity:g} m/s² (not in m/s², or never at rest)"

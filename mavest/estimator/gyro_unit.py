@@ -73,9 +73,10 @@ def turn_ratios(
         wa = accel[rows].reshape(k, length, 3)
         with np.errstate(invalid="ignore"):
             ok = np.abs(wt[:, -1] - wt[:, 0] - (length - 1) * step) <= 0.1 * (length - 1) * step
-        ends = np.stack([wa[:, :END_SAMPLES].mean(axis=1), wa[:, -END_SAMPLES:].mean(axis=1)])
-        norms = np.linalg.norm(ends, axis=2)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        # (absurd values overflow to inf here, and the norm's check leaves their windows out)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            ends = np.stack([wa[:, :END_SAMPLES].mean(axis=1), wa[:, -END_SAMPLES:].mean(axis=1)])
+            norms = np.linalg.norm(ends, axis=2)
             ok &= np.all(np.abs(norms - gravity) <= NORM_TOLERANCE * gravity, axis=0)
             u, v = ends[0] / norms[0, :, None], ends[1] / norms[1, :, None]
             measured = np.arctan2(np.linalg.norm(np.cross(u, v), axis=1), np.sum(u * v, axis=1))

@@ -85,7 +85,7 @@ class StepFlags:
 
     INITIALISED = 1  # this sample set the initial attitude from the accelerometer
     NOT_INITIALISED = 2  # no usable sample yet: the output is a placeholder
-    ACCEL_INVALID = 4  # accelerometer not finite or zero: not used
+    ACCEL_INVALID = 4  # accelerometer not finite, zero or beyond 50 g: not used
     ACCEL_REJECTED_NORM = 8  # |‖a‖ − g| beyond tolerance: not gravity
     ACCEL_DISTURBED = 16  # innovation beyond the χ² gate: used with its noise inflated to match
     GYRO_INVALID = 32  # gyroscope not finite or beyond MAX_ANGULAR_RATE: sample skipped

@@ -44,6 +44,7 @@ import numpy as np
 
 from mavest import so3
 from mavest._jit import inplace_kernel
+from mavest.estimator.config import MAX_SPECIFIC_FORCE
 from mavest.estimator.frames import (
     EPS,
     RATE,
@@ -51,6 +52,7 @@ from mavest.estimator.frames import (
     aided_coupling,
     horizontal_times,
     vector_is_finite,
+    within,
 )
 from mavest.estimator.layout import (
     ERROR_LEFT,
@@ -113,10 +115,15 @@ def step_coefficients(s: StateRecord, c: CoefficientsRecord, dt: float) -> None:
 
 @inplace_kernel
 def accel_is_valid(accel: np.ndarray) -> bool:
-    """Whether an accelerometer sample is a measurement: finite, and not zero on all three
-    axes (no real sensor reads exactly nothing: noise alone moves it; all zero is an empty
-    field). StepFlags.ACCEL_INVALID says a sample is not."""
-    return vector_is_finite(accel) and (accel[0] != 0.0 or accel[1] != 0.0 or accel[2] != 0.0)
+    """Whether an accelerometer sample is a measurement: within any accelerometer's range
+    (MAX_SPECIFIC_FORCE, which a NaN is not), and not zero on all three axes (no real
+    sensor reads exactly nothing: noise alone moves it; all zero is an empty field).
+    StepFlags.ACCEL_INVALID says a sample is not. A value beyond the range is a corrupt
+    one: averaged into the low-pass it would hold the direction of gravity away for the
+    low-pass's seconds, and every update after it rejected."""
+    return within(accel, MAX_SPECIFIC_FORCE) and (
+        accel[0] != 0.0 or accel[1] != 0.0 or accel[2] != 0.0
+    )
 
 
 @inplace_kernel

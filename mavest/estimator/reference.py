@@ -33,8 +33,8 @@ kinds, error sides, charts and reset policies, the filter without the low-pass
 (``accel_lowpass_time = 0``), the measured motion level (``velocity_adapt_time``),
 and known accelerations (``linear_accel``). Not covered at run time, refused with
 a ``ValueError`` saying why: time not increasing or a gap beyond ``max_dt``, a
-non-finite or clipped gyroscope, a non-finite accelerometer, a divergence
-(tilt reopened twice within ``divergence_window``) and a failed health check
+non-finite or clipped gyroscope, an accelerometer not finite or beyond 50 g, a
+divergence (tilt reopened twice within ``divergence_window``) and a failed health check
 (docs/design.md#health-rules: what follows is a re-initialisation).
 """
 
@@ -48,7 +48,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from mavest.estimator import StepFlags
-from mavest.estimator.config import EstimatorConfig
+from mavest.estimator.config import MAX_SPECIFIC_FORCE, EstimatorConfig
 
 # Indices of the error state: δθ (heading-tilt chart: τx, τy, ψ), δb, then the
 # considered states, each along the world's x and y (docs/design.md, "Two axes").
@@ -377,6 +377,10 @@ class ReferenceFilter:
             raise ValueError(f"t = {t}: a non-finite sample is outside the reference's scope")
         if np.any(np.abs(gyro) >= c.gyro_clip):
             raise ValueError(f"t = {t}: a clipped gyroscope is outside the reference's scope")
+        if np.any(np.abs(accel) > MAX_SPECIFIC_FORCE):
+            raise ValueError(
+                f"t = {t}: an accelerometer beyond 50 g is outside the reference's scope"
+            )
         report = self.report
         report.accel_used = report.mag_used = report.at_rest = False
         report.flags = report.iterations = 0
