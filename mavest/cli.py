@@ -28,6 +28,7 @@ import io
 import logging
 import math
 import os
+import stat
 import sys
 import time
 import warnings
@@ -125,6 +126,10 @@ _NON_NEGATIVE = _number(0.0)
 _ID = _number(1, 255, whole=True)
 _PORT = _number(1, 65535, whole=True)
 _SEED = _number(0, 2**32 - 1, whole=True)
+# A simulated flight written to a file: a day of it at 2 kHz is about 20 GB of tlog,
+# beyond which a length is a typing slip that would fill the disk.
+MAX_FLIGHT_SECONDS = 86_400.0
+_FLIGHT_SECONDS = _number(0.0, MAX_FLIGHT_SECONDS, above=True)
 
 
 def _load_config(args: argparse.Namespace) -> ServiceConfig:
@@ -280,9 +285,11 @@ def _output_paths(args: argparse.Namespace) -> dict[str, str | Path | None]:
     return {"--out-tlog": args.out_tlog, "--rrd": args.rrd, "--estimates": args.estimates}
 
 
-def _finish(report: RunReport) -> int:
-    """Print the summary; the exit code of a run or replay (see the module's docstring)."""
-    report.compile_seconds = COMPILING.seconds
+def _finish(report: RunReport, compiled_before: float) -> int:
+    """Print the summary; the exit code of a run or replay (see the module's docstring).
+    ``compiled_before``: COMPILING's seconds when the run began (what was compiled
+    before it, as a demo's simulator, is not the run's time)."""
+    report.compile_seconds = COMPILING.seconds - compiled_before
     REPEATS.report(log)
     _say(report.summary())
     if report.interrupted:
@@ -307,6 +314,7 @@ def _run(args: argparse.Namespace) -> int:
         _output_paths(args),
     )
     outputs = _outputs(args)
+    compiled_before = COMPILING.seconds
     try:
         report = asyncio.run(
             run_live(
@@ -317,7 +325,7 @@ def _run(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     # stopped by Ctrl-C or SIGTERM: the way a service ends, not an interruption
     report.interrupted = False
-    return _finish(report)
+    return _finish(report, compiled_before)
 
 
 def _replay(args: argparse.Namespace) -> int:
@@ -326,13 +334,14 @@ def _replay(args: argparse.Namespace) -> int:
         {"the log being replayed": args.tlog, "the --config file": args.config}, _output_paths(args)
     )
     outputs = _outputs(args)
+    compiled_before = COMPILING.seconds
 
     async def main() -> RunReport:
         with stop_on_signals() as stop:
 
             async def serve_on(report: RunReport) -> None:
                 # the served web viewer holds the recording: it goes when mavest does
-                report.compile_seconds = COMPILING.seconds
+                report.compile_seconds = COMPILING.seconds - compiled_before
                 REPEATS.report(log)
                 _say(report.summary())
                 log.info("replay done; the web viewer serves the recording until Ctrl-C")
@@ -355,7 +364,7 @@ def _replay(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     if report.lingered:  # the summary was printed before serving; Ctrl-C ended the serving
         return 0 if report.pipeline.streams else EXIT_NO_IMU
-    return _finish(report)
+    return _finish(report, compiled_before)
 
 
 # --------------------------------------------------------------------------
@@ -481,6 +490,8 @@ def _simulate(args: argparse.Namespace) -> int:
     if args.tlog is not None:
         if args.seconds is None:
             raise UsageError("--tlog needs --seconds (how long a flight to write)")
+        if args.seconds > MAX_FLIGHT_SECONDS:  # (a file's flight: bounded as demo's)
+            raise UsageError(f"--tlog takes --seconds up to {MAX_FLIGHT_SECONDS:g}")
         summary = write_flight_tlog(args.tlog, args.seconds, args.rate, autopilot, args.seed)
         _say(summary)
         return 0
@@ -525,11 +536,12 @@ def _demo(args: argparse.Namespace) -> int:
         raise UsageError(str(error)) from None
     _say(made)
     _say(f"  ({time.perf_counter() - start:.1f} s)\n")
+    compiled_before = COMPILING.seconds  # (the simulator's kernels: not the replay's time)
     try:
         report = asyncio.run(replay(flight, config, outputs, progress=False))
     except (TlogError, ViewerError, OutputPathError) as error:
         raise UsageError(str(error)) from None
-    report.compile_seconds = COMPILING.seconds
+    report.compile_seconds = COMPILING.seconds - compiled_before
     REPEATS.report(log)
     _say(report.summary())
     _say(
@@ -550,9 +562,17 @@ CSV_COLUMNS = ("t", "gx", "gy", "gz", "ax", "ay", "az")
 
 def _read_imu_csv(path: Path) -> np.ndarray:
     """The CSV's samples as columns t, gx, gy, gz, ax, ay, az. A first line that is not
-    numbers is a header: these seven names in any order, saying which column is which."""
-    if path.is_dir():
+    numbers is a header: these seven names in any order, saying which column is which.
+    A row that is not seven numbers (a file cut off while written, a damaged line) is
+    left out and said in one line; a file of which most rows are not is refused."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        mode = 0  # (said by the read below)
+    if stat.S_ISDIR(mode):
         raise UsageError(f"{path}: is a directory, not a CSV file")
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):  # (/dev/zero would be read without end)
+        raise UsageError(f"{path}: is a device: a CSV is read from a file or a pipe")
     try:
         text = path.read_text(encoding="utf-8-sig")  # (a spreadsheet's byte-order mark)
     except FileNotFoundError:
@@ -561,21 +581,53 @@ def _read_imu_csv(path: Path) -> np.ndarray:
         raise UsageError(f"{path}: not a text file (a CSV of numbers is expected)") from None
     except OSError as error:
         raise UsageError(f"cannot read {path}: {error.strerror}") from None
-    lines = [line for line in text.splitlines() if line.strip() and not line.startswith("#")]
+    rows = [
+        (number, line)
+        for number, line in enumerate(text.splitlines(), start=1)
+        if line.strip() and not line.startswith("#")
+    ]
     order = list(range(len(CSV_COLUMNS)))
-    if lines and not _is_number(lines[0].split(",")[0]):
-        order = _header_order(path, lines.pop(0))
-    if not lines:
+    if rows and not _is_number(rows[0][1].split(",")[0]):
+        order = _header_order(path, rows.pop(0)[1])
+    if not rows:
         raise UsageError(f"{path}: no samples (expected rows of {', '.join(CSV_COLUMNS)})")
+    lines = [line for _, line in rows]
     try:
         table = np.loadtxt(lines, delimiter=",", ndmin=2)
     except ValueError as error:
-        raise UsageError(f"{path}: not a CSV of numbers ({error})") from None
+        # not every row is numbers of one count: keep the rows that are a sample
+        bad = [(number, line) for number, line in rows if not _is_sample_row(line)]
+        if not bad:  # numbers Python reads and NumPy does not ("1_000")
+            raise UsageError(f"{path}: not a CSV of numbers ({error})") from None
+        number, line = bad[0]
+        if 2 * len(bad) > len(rows):  # not a damaged file of samples: another format
+            raise UsageError(
+                f"{path}: not a CSV of numbers: {len(bad)} of {len(rows)} rows are not the "
+                f"{len(CSV_COLUMNS)} numbers {', '.join(CSV_COLUMNS)} (the first at line "
+                f"{number}: {line[:60]!r})"
+            ) from None
+        log.warning(
+            "%s: %d of %d rows left out, not %d numbers (the first at line %d: %r)",
+            path,
+            len(bad),
+            len(rows),
+            len(CSV_COLUMNS),
+            number,
+            line[:60],
+        )
+        table = np.loadtxt([line for line in lines if _is_sample_row(line)], delimiter=",", ndmin=2)
     if table.shape[1] != len(CSV_COLUMNS):
         raise UsageError(
             f"{path}: expected 7 columns {', '.join(CSV_COLUMNS)}; found {table.shape[1]}"
         )
     return table[:, order]
+
+
+def _is_sample_row(line: str) -> bool:
+    """Whether a CSV line is one sample: :data:`CSV_COLUMNS`' count of numbers (a ``#``
+    and what follows it are a comment, as ``np.loadtxt`` takes them)."""
+    fields = line.split("#", 1)[0].split(",")
+    return len(fields) == len(CSV_COLUMNS) and all(_is_number(field) for field in fields)
 
 
 def _header_order(path: Path, line: str) -> list[int]:
@@ -1058,7 +1110,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--autopilot", choices=("ardupilot", "px4"), default="ardupilot", help="message flavour"
     )
     sim.add_argument(
-        "--seconds", type=_POSITIVE, help="stop after this long (default: until Ctrl-C)"
+        "--seconds",
+        type=_POSITIVE,
+        help="stop after this long (default: until Ctrl-C; with --tlog up to 86400)",
     )
     sim.add_argument("--seed", type=_SEED, default=1, help="flight and noise seed (default 1)")
     sim.add_argument("--tlog", type=Path, metavar="PATH", help="write a tlog instead of streaming")
@@ -1073,7 +1127,10 @@ def build_parser() -> argparse.ArgumentParser:
         "against the truth.",
     )
     demo.add_argument(
-        "--seconds", type=_POSITIVE, default=120.0, help="flight length (default 120)"
+        "--seconds",
+        type=_FLIGHT_SECONDS,
+        default=120.0,
+        help="flight length (up to 86400, default 120)",
     )
     demo.add_argument(
         "--rate", type=_number(1, 2000), default=400.0, help="IMU rate in Hz (default 400)"

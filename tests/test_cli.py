@@ -128,6 +128,8 @@ def test_estimate_to_parquet_without_pyarrow_is_one_line_before_any_work(
         (["estimate", "{tmp}/narrow.csv", "--config", "{tmp}/huge.toml"], "gyro_noise_density"),
         (["demo", "--config", "{tmp}/bad.toml"], "unknown estimator parameter"),
         (["demo", "--seconds", "-1"], "argument --seconds: -1 is not a number above 0"),
+        (["demo", "--seconds", "1e300"], "1e300 is not a number above 0 to 86400"),
+        (["sim", "--tlog", "{tmp}/x.tlog", "--seconds", "1e9"], "--seconds up to 86400"),
         (["run", "udpin:nowhere"], "needs HOST:PORT"),
         (["sim", "--tlog", "{tmp}/x.tlog"], "--tlog needs --seconds"),
     ],

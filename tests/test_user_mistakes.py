@@ -301,6 +301,51 @@ def test_an_empty_csv_is_one_line(tmp_path: Path) -> None:
         _one_line(done.stderr, "no samples")
 
 
+@pytest.mark.parametrize("damage", ["cut off", "a damaged line"])
+def test_a_csv_with_broken_rows_keeps_the_others_and_says_so_in_one_line(
+    tmp_path: Path, damage: str
+) -> None:
+    """A file cut off mid-row, or one line of it damaged, was refused whole (and numpy's
+    advice about `usecols` printed): every sample it held was lost."""
+    data = simulate(4.0, 50.0, seed=1)
+    whole, broken = tmp_path / "whole.csv", tmp_path / "broken.csv"
+    np.savetxt(whole, np.column_stack([data.t, data.gyro, data.accel]), delimiter=",")
+    lines = whole.read_text().splitlines(keepends=True)
+    if damage == "cut off":
+        kept = lines[:-1]
+        broken.write_text("".join(kept) + lines[-1][:20])
+        said = f"1 of {len(lines)} rows left out, not 7 numbers (the first at line {len(lines)}"
+    else:
+        kept = lines[:99] + lines[100:]
+        broken.write_text("".join(lines[:99]) + "0.1,x\n" + "".join(lines[100:]))
+        said = f"1 of {len(lines)} rows left out, not 7 numbers (the first at line 100: '0.1,x')"
+    (tmp_path / "kept.csv").write_text("".join(kept))
+    runs = [
+        subprocess.run(
+            [*MAVEST, "estimate", str(tmp_path / name), "-o", str(tmp_path / f"{name}.out")],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        for name in ("broken.csv", "kept.csv")
+    ]
+    assert [run.returncode for run in runs] == [0, 0]
+    _one_line(runs[0].stderr, said)
+    # the rows read are estimated as a file of those rows alone would be
+    assert (tmp_path / "broken.csv.out").read_bytes() == (tmp_path / "kept.csv.out").read_bytes()
+
+
+def test_a_csv_mostly_not_samples_is_refused_and_a_device_is_not_read(tmp_path: Path) -> None:
+    path = tmp_path / "other.csv"
+    path.write_text("0,1,2,3,4,5,6\n" + "0;1;2;3;4;5;6\n" * 3)
+    for source, said in ((path, "3 of 4 rows are not the 7 numbers"), ("/dev/zero", "device")):
+        done = subprocess.run(
+            [*MAVEST, "estimate", str(source)], capture_output=True, text=True, check=False
+        )
+        assert done.returncode == 2
+        _one_line(done.stderr, said)
+
+
 def test_a_gyro_in_degrees_per_second_is_one_line_and_no_table(tmp_path: Path) -> None:
     """A CSV whose gyro is in °/s: one line naming the unit, exit 2, no table written
     (it was read as rad/s and gave 103° of tilt error without a word)."""
@@ -344,6 +389,12 @@ def test_compiling_is_said_once_and_left_out_of_the_throughput(mavest_log: _Line
 
     report = runners.RunReport(Pipeline(ServiceConfig()), elapsed=10.0, compile_seconds=8.0)
     assert "10.00 s (8 s of it compiling the filter, a first run)" in report.summary()
+    # compiled before the run's clock started (a demo's simulator): never more than the
+    # whole, and no rate where none was measured (it read "43 s of it", "inf k samples/s")
+    report = runners.RunReport(Pipeline(ServiceConfig()), elapsed=40.71, compile_seconds=43.0)
+    summary = report.summary()
+    assert "40.71 s (41 s of it compiling the filter, a first run)" in summary
+    assert "inf" not in summary and "k samples/s" not in summary
 
 
 # ------------------------------------------------------------------ exit codes
@@ -721,15 +772,18 @@ def test_a_missing_simulator_names_the_extra(
     assert not (tmp_path / "f.tlog").exists()
 
 
-def _tlog_at_rest_in_g(path: Path, seconds: float = 3.0, rate: float = 200.0) -> None:
-    """A vehicle at rest whose HIGHRES_IMU accelerometer is in g, not m/s²."""
+def _tlog_at_rest_in_g(
+    path: Path, seconds: float = 3.0, rate: float = 200.0, g: float = 1.0, x_rate: float = 0.0
+) -> None:
+    """A vehicle at rest whose HIGHRES_IMU accelerometer is in g, not m/s² (``g``: what
+    it reads for 1 g), its gyro reading ``x_rate`` rad/s about x besides its noise."""
     rng = np.random.default_rng(1)
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
     records = [(0, mav.heartbeat_encode(2, 3, 0, 0, 4).pack(mav))]
     for k in range(int(seconds * rate)):
         usec = 10_000_000 + round(k * 1e6 / rate)
-        gyro = rng.normal(0.0, 0.002, 3)
-        accel = np.array([0.01, -0.02, -1.0]) + rng.normal(0.0, 0.002, 3)
+        gyro = rng.normal(0.0, 0.002, 3) + np.array([x_rate, 0.0, 0.0])
+        accel = g * (np.array([0.01, -0.02, -1.0]) + rng.normal(0.0, 0.002, 3))
         message = mav.highres_imu_encode(
             usec, *accel, *gyro, 0.2, 0.0, 0.4, 1013.0, 0.0, 0.0, 20.0, 0x3F | 0x1C0, 0
         )

@@ -976,17 +976,18 @@ def format_summary(report: RunReport) -> str:
     pipeline = report.pipeline
     lines = []
     samples = _estimated(pipeline)
-    working = report.elapsed - report.compile_seconds
-    rate = samples / working if working > 0 else math.inf
+    # (the compiling counted is that within the run's time, but a run's clock and the
+    # compile watch's start apart: never more than the whole)
+    compiled = min(report.compile_seconds, report.elapsed)
+    working = report.elapsed - compiled
     status = " (interrupted)" if report.interrupted else ""
     compiling = (
-        f" ({report.compile_seconds:.0f} s of it compiling the filter, a first run)"
-        if report.compile_seconds >= 0.5
-        else ""
+        f" ({compiled:.0f} s of it compiling the filter, a first run)" if compiled >= 0.5 else ""
     )
+    throughput = f" ({samples / working / 1000:.1f} k samples/s)" if working > 0.0 else ""
     lines.append(
         f"{report.source}{status}: {report.records} messages in {report.elapsed:.2f} s"
-        f"{compiling}, {samples} IMU samples estimated ({rate / 1000:.1f} k samples/s)"
+        f"{compiling}, {samples} IMU samples estimated{throughput}"
     )
     if report.bad_records or report.skipped_bytes or report.dropped_samples:
         dropped = (
