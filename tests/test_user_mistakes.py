@@ -26,6 +26,7 @@ from test_output_files import imu_tlog
 import mavest.service.runners as runners
 from mavest.cli import COMPILING, EXIT_INTERRUPTED, EXIT_NO_IMU, main
 from mavest.estimator import AccelUnitWarning
+from mavest.fleet.rows import LogTask, log_rows
 from mavest.mavlink.links import LinkError, make_link, parse_endpoint
 from mavest.paths import OutputPathError, check_outputs
 from mavest.service.config import ServiceConfig
@@ -817,6 +818,27 @@ def test_an_accelerometer_in_g_is_one_line_and_counted(
     # no attitude, so none said to the vehicle (not the level one the filter starts from)
     assert stream.stats.answered == 0
     assert "600 samples over 3.0 s at 200.0 Hz, 0 answered" in summary
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_a_gyro_clipped_throughout_is_said_once_and_counted(
+    tmp_path: Path, fast: bool, mavest_log: _Lines
+) -> None:
+    """A gyro beyond gyro_clip on every sample: the summary said "no resets" and nothing
+    was logged (the filter is calm again never, so never re-aligned), while every
+    attitude reported was a guess."""
+    log = tmp_path / "spinning.tlog"
+    _tlog_at_rest_in_g(log, g=9.80665, x_rate=40.0)  # (33.9 rad/s is gyro_clip)
+    report = asyncio.run(replay(log, ServiceConfig(), Outputs(), progress=False, fast=fast))
+    said = [line for line in mavest_log.lines if "the gyro clipped (an axis beyond" in line]
+    assert len(said) == 1 and "t=10.0 s" in said[0], mavest_log.text()
+    (stream,) = report.pipeline.streams.values()
+    # every sample but the one the filter started on
+    assert stream.stats.gyro_clipped == stream.stats.estimated - 1 == 599
+    assert "599 samples with the gyro clipped" in report.summary()
+    if fast:  # (as a fleet replays a log)
+        (row,) = log_rows(LogTask(str(log), ServiceConfig()))
+        assert row["gyro_clipped"] == 599
 
 
 def test_the_command_line_says_a_wrong_unit_without_pythons_warning(

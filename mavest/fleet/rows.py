@@ -65,6 +65,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
     ("dropped", "int64"),  # duplicates, out of order, off the stream's timeline
     ("realigned", "int64"),  # tilt re-aligned after a gap
     ("reboots", "int64"),
+    ("gyro_clipped", "int64"),  # samples with a gyro axis beyond gyro_clip
     # filter health: tilt reopened (the accelerometer disturbed too long),
     # re-initialised after a divergence or a failed health check, tilt re-aligned
     # after the gyro clipped; health_events is their sum
@@ -408,6 +409,7 @@ def _rows(source: str, report: RunReport, sigmas: SigmaMeans) -> list[dict[str, 
             dropped=stats.duplicates + stats.out_of_order + stats.off_timeline,
             realigned=stats.realigned,
             reboots=stats.reboots,
+            gyro_clipped=stats.gyro_clipped,
             tilt_reopened=stats.tilt_reopened,
             diverged=stats.diverged,
             unhealthy=stats.unhealthy,

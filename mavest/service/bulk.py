@@ -88,6 +88,7 @@ from mavest.service.pipeline import (
     is_news,
     reject_sample,
     report_accel_unit,
+    report_clipped,
     usable_mag,
     usable_reference,
     valid_sample,
@@ -958,6 +959,7 @@ class BulkFeed:
         if not kept.shape[0]:
             return kept
         count_estimated(stats, flags[kept], steps.usable_mag[kept], steps.series.mag_used[kept])
+        report_clipped(stream, flags[kept], t[kept])
         if stats.first_t is None:
             stats.first_t = float(t[kept[0]])
         stats.last_t = float(t[kept[-1]])

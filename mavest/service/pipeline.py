@@ -167,6 +167,7 @@ class StreamStats:
     diverged: int = 0  # contradicted again soon after that: re-initialised
     unhealthy: int = 0  # the state failed its health check: re-initialised
     clip_realigned: int = 0  # calm again after a clipped gyro: tilt re-aligned
+    gyro_clipped: int = 0  # samples with a gyro axis beyond gyro_clip (rotation missed)
     # samples the filter did not start on: the accelerometer reads g in another unit
     accel_wrong_unit: int = 0
     not_started: int = 0  # samples estimated before the filter had an attitude, any reason
@@ -726,6 +727,7 @@ class Pipeline:
         if flags & StepFlags.ACCEL_WRONG_UNIT:
             report_accel_unit(stream, 1, stream.estimator.accel_unit_problem)
         count_estimated(stats, flags, mag is not None, estimate.mag_used)
+        report_clipped(stream, flags, t)
         if airspeed_aided and not flags & StepFlags.ACCEL_AIDED:
             stats.airspeed_aided += 1
         book_step(stream, flags, t)
@@ -1312,6 +1314,24 @@ def count_estimated(stats: StreamStats, flags: Any, mag_usable: Any, mag_used: A
     stats.mag_usable += _count(mag_usable)
     stats.mag_taken += _count(taken)
     stats.mag_used += _count(taken & mag_used)
+
+
+def report_clipped(stream: Stream, flags: Any, t: Any) -> None:
+    """Count the estimated samples whose gyro clipped (one step's flags and time, or a
+    block's arrays of them), and say the first: the rotation they missed is unknown, and
+    tilt is re-aligned only once the vehicle is calm again (CLIP_REALIGNED), which a gyro
+    clipped throughout never is."""
+    stats = stream.stats
+    clipped = (flags & StepFlags.GYRO_CLIPPED) != 0
+    count = _count(clipped)
+    if count and not stats.gyro_clipped:
+        first = t if isinstance(clipped, bool) else t[np.flatnonzero(clipped)[0]]
+        log.warning(
+            "%s: t=%.1f s: the gyro clipped (an axis beyond gyro_clip = %g rad/s): the "
+            "rotation it missed is unknown; tilt re-aligns when the vehicle is calm again",
+            *(stream.key, first, stream.estimator.config.gyro_clip),
+        )
+    stats.gyro_clipped += count
 
 
 def report_heading(stream: Stream, flags: int) -> None:

@@ -1039,6 +1039,7 @@ def format_summary(report: RunReport) -> str:
                 ("tilt reopened (accelerometer disturbed too long)", stats.tilt_reopened),
                 ("re-initialised after a divergence", stats.diverged),
                 ("re-initialised after a failed health check", stats.unhealthy),
+                ("sample with the gyro clipped/samples with the gyro clipped", stats.gyro_clipped),
                 ("tilt re-aligned after the gyro clipped", stats.clip_realigned),
             )
         )
