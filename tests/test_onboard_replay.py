@@ -291,6 +291,17 @@ def test_an_onboard_logs_damage_is_counted_as_a_tlogs(synthetic_bin: Any) -> Non
     ) in report.summary().splitlines()
 
 
+def test_damage_a_decoder_did_not_measure_is_not_said_to_be_none(synthetic_bin: Any) -> None:
+    """pyulog says only that it found corrupt data: the summary said "0 bytes skipped"
+    of a ULog of which it had read a quarter."""
+    damage = LogDamage(bad_records=1, extent_unknown=True)
+    report = _replay(synthetic_bin(_synthetic_log(seconds=2.0, damage=damage)))
+    assert (
+        "  damaged input: 1 bad records, bytes skipped not counted by the decoder "
+        "(what follows the damage may be lost)"
+    ) in report.summary().splitlines()
+
+
 @pytest.mark.parametrize(
     ("name", "content", "said"),
     [

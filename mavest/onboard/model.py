@@ -46,6 +46,9 @@ class LogDamage:
     skipped_bytes: int = 0  # bytes passed over while resynchronising
     truncated_bytes: int = 0  # a last record cut off at the end of the file
     dropped_samples: int = 0  # samples dropped for time going back or repeating
+    # the reader passed over damage without saying how much (pyulog): skipped_bytes is 0
+    # for want of a count, not for want of damage
+    extent_unknown: bool = False
 
 
 @dataclass(frozen=True)

@@ -301,6 +301,7 @@ def load_ulog(path: Path | str) -> OnboardLog:
         damage=LogDamage(
             bad_records=int(corrupt) + build.timeline.unreadable,
             dropped_samples=build.timeline.dropped + build.timeline.off_timeline,
+            extent_unknown=corrupt,
         ),
         notes=build.final_notes(),
     )

@@ -120,6 +120,7 @@ class RunReport:
     interrupted: bool = False
     bad_records: int = 0
     skipped_bytes: int = 0
+    skipped_unknown: bool = False  # damage passed over by a reader that did not count it
     # what a bad record is: a tlog's packet, an onboard log's record
     bad_record_kind: str = "packets"
     # an onboard log's samples whose time repeated, went back or was far off the timeline
@@ -673,6 +674,7 @@ def _fill_replay_report(report: RunReport, source: _Source, opened: _Opened, sta
         + damage.skipped_bytes
         + damage.truncated_bytes
     )
+    report.skipped_unknown = damage.extent_unknown
     report.bad_record_kind = source.bad_record_kind
     report.dropped_samples = damage.dropped_samples
 
@@ -996,9 +998,14 @@ def format_summary(report: RunReport) -> str:
             if report.dropped_samples
             else ""
         )
+        skipped = (
+            "bytes skipped not counted by the decoder (what follows the damage may be lost)"
+            if report.skipped_unknown
+            else f"{report.skipped_bytes} bytes skipped"
+        )
         lines.append(
             f"  damaged input: {report.bad_records} bad {report.bad_record_kind}, "
-            f"{report.skipped_bytes} bytes skipped{dropped}"
+            f"{skipped}{dropped}"
         )
     if not pipeline.streams:
         lines.append(
