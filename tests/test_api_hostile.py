@@ -452,3 +452,111 @@ def test_a_series_slice_is_a_series_of_views() -> None:
     assert series[np.int64(-1)].t == t[-1]
     with pytest.raises(TypeError, match="indexed by a sample number or a slice"):
         series[[1, 2]]  # type: ignore[call-overload]
+
+
+# --- what a caller hands over besides the samples ------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"compass_dia": (-1.0, -1.0, -1.0)},  # the field turned: heading 170° off
+        {"compass_dia": (1.0, 1.0, -1.0)},  # a reflection
+        {"compass_dia": (1e200, 1e200, 1e200)},  # numpy overflowed, then every reading invalid
+        {"compass_dec": 12.5},  # degrees
+    ],
+)
+def test_a_magnetometer_calibration_no_sensor_has_is_refused(changes: dict[str, Any]) -> None:
+    """Each was taken: a heading turned or mirrored, or a declination in degrees."""
+    name = next(iter(changes))
+    with pytest.raises(ConfigError, match=name.replace("compass_dia", "compass_dia/compass_odi")):
+        EstimatorConfig(**changes)
+    with pytest.raises(ValueError, match="declination must be within"):
+        Estimator().declination = 12.5
+
+
+@pytest.mark.parametrize(
+    ("arguments", "said"),
+    [
+        ({"t": math.nan, "q": [1.0, 0.0, 0.0, 0.0]}, "t must be a finite time"),
+        ({"t": 0.0, "q": [1e300, 1e300, 0.0, 0.0]}, None),  # a finite quaternion: normalised
+        ({"t": 0.0, "q": [1e-320, 0.0, 0.0, 0.0]}, None),
+        ({"t": 0.0, "q": [1.0, 0.0, 0.0, 0.0], "bias": [math.nan, 0.0, 0.0]}, "bias must be"),
+        ({"t": 0.0, "q": [1.0, 0.0, 0.0, 0.0], "bias": [0.6, 0.0, 0.0]}, "bias must be"),
+        ({"t": 0.0, "q": [1.0, 0.0, 0.0, 0.0], "cov": 100.0 * np.eye(6)}, "variances"),
+    ],
+)
+def test_initialise_refuses_a_state_the_health_check_would_throw_away(
+    arguments: dict[str, Any], said: str | None
+) -> None:
+    """A NaN time made every later sample TIME_NOT_INCREASING, a huge quaternion was
+    stored as [0, 0, 0, 0], and a bias or covariance beyond the health bounds was
+    thrown away at the next sample (UNHEALTHY_RESET)."""
+    estimator = Estimator()
+    if said is not None:
+        with pytest.raises(ValueError, match=said):
+            estimator.initialise(**arguments)
+        return
+    estimator.initialise(**arguments)
+    q = estimator.q
+    assert np.isclose(np.linalg.norm(q), 1.0) and np.all(np.isfinite(q))
+    t, gyro, accel = quiet(200)
+    out = estimator.update_batch(t + 1.0, gyro, accel)
+    assert not np.any(out.flags & StepFlags.UNHEALTHY_RESET)
+
+
+def test_restore_takes_only_a_snapshot() -> None:
+    """restore(0) zeroed the state; a wrong shape failed with numpy's broadcast error."""
+    estimator = Estimator()
+    for wrong in (0, np.zeros(3), estimator.snapshot()[["t"]]):
+        with pytest.raises(TypeError, match="snapshot"):
+            estimator.restore(wrong)
+
+
+def test_a_masked_array_is_taken_with_its_mask_and_dates_are_refused() -> None:
+    """The values under a mask were estimated from as if measured (80° off there)."""
+    t, gyro, accel = quiet(1200)
+    masked = np.ma.masked_array(gyro.copy(), mask=False)
+    masked.data[500:600] = 3.0
+    masked[500:600] = np.ma.masked
+    nan = gyro.copy()
+    nan[500:600] = math.nan
+    np.testing.assert_array_equal(estimate(t, masked, accel).q, estimate(t, nan, accel).q)
+    with pytest.raises(TypeError, match="seconds as float64"):
+        estimate((t * 1e3).astype("datetime64[ms]"), gyro, accel)
+
+
+def test_a_clock_that_jumps_by_years_and_stays_keeps_the_bias() -> None:
+    """Boot time turned Unix time: the bias's variance grew past the health bound over
+    the gap and the filter re-initialised, the bias learned lost (kept at 1e8 s)."""
+    t, gyro, accel = quiet(4000)
+    gyro[:, 0] += 0.01  # a bias to learn
+    t[2000:] += 1.7e9
+    out = estimate(t, gyro, accel)
+    # (the first samples after the jump wait for the new timeline to be confirmed)
+    (gap,) = np.flatnonzero(out.flags & StepFlags.GAP_REALIGNED)
+    assert 2000 <= gap < 2010
+    assert not np.any(out.flags & StepFlags.UNHEALTHY_RESET)
+    np.testing.assert_allclose(out.bias[gap], out.bias[1999], atol=1e-12)
+    assert out.bias[gap, 0] > 0.003  # (learning it: the prior is 0)
+
+
+def test_subnormal_time_steps_are_no_crash() -> None:
+    """The gyro unit's window of a 1e-310 s step was infinite: OverflowError."""
+    n = 100
+    accel = np.tile([0.0, 0.0, -G], (n, 1))
+    out = estimate(np.arange(n) * 1e-310, np.zeros((n, 3)), accel)
+    assert np.all(np.isfinite(out.q))
+
+
+def test_a_magnetometer_reading_not_finite_in_part_is_invalid_and_all_nan_is_none() -> None:
+    """An inf or part-NaN reading was skipped as "no reading", without a flag, while
+    1e300 said MAG_INVALID."""
+    t, gyro, accel = quiet(1200)
+    mag = np.tile([20.0, 0.0, 45.0], (len(t), 1))
+    mag[600] = [math.inf, 0.0, 45.0]
+    mag[700] = [20.0, math.nan, 45.0]
+    mag[800] = math.nan
+    flags = estimate(t, gyro, accel, mag).flags
+    assert flags[600] & StepFlags.MAG_INVALID and flags[700] & StepFlags.MAG_INVALID
+    assert not flags[800] & StepFlags.MAG_INVALID

@@ -44,6 +44,18 @@ def test_another_unit_is_named_and_refused_by_every_batch_call(flight, factor, u
             call(flight.t, gyro, flight.accel)
 
 
+def test_a_vehicle_that_tilts_slowly_is_judged_over_longer_windows() -> None:
+    """The simulator's own flight, banking ±30° over seconds, had 1–13 windows of
+    0.25 s that tilt by 5°: in °/s it was estimated 129° off without a word."""
+    from mavest.sim.kinematic import simulate as fly
+
+    slow = fly(duration=60.0, rate=200.0, seed=1)
+    assert turn_ratios(slow.t, slow.gyro, slow.accel, G, 0.1).shape[0] < MIN_WINDOWS
+    assert gyro_unit_problem(slow.t, slow.gyro, slow.accel, G, 0.1) is None
+    problem = gyro_unit_problem(slow.t, np.degrees(slow.gyro), slow.accel, G, 0.1)
+    assert problem is not None and "in °/s?" in problem
+
+
 def test_without_tilting_there_is_no_verdict() -> None:
     """At rest, or turning about the vertical alone, the accelerometer shows no turn to
     compare: nothing is said, whatever the unit."""

@@ -380,16 +380,24 @@ class EstimatorConfig:
                 len(value) == 3 and all(math.isfinite(v) for v in value),
                 f"{name} must be three finite numbers",
             )
-        _require(math.isfinite(self.compass_dec), "compass_dec must be finite (rad)")
+        _require(
+            abs(self.compass_dec) <= math.pi,
+            f"compass_dec must be within ±π rad, got {self.compass_dec} (degrees?)",
+        )
         self._require_healthy_start()
         _require(
             abs(self.sigma_beta) <= NUMBER_RANGE[1],
             f"sigma_beta must be a number from -{NUMBER_RANGE[1]:g} to {NUMBER_RANGE[1]:g}, "
             f"got {self.sigma_beta}",
         )
+        # A calibration's soft-iron matrix is a scaling near I: positive definite. A
+        # negative or reflecting one turns the field (a heading 170° off, silently).
+        with np.errstate(all="ignore"):
+            least = float(np.min(np.linalg.eigvalsh(self.soft_iron)))
         _require(
-            abs(float(np.linalg.det(self.soft_iron))) > 1e-6,
-            "compass_dia/compass_odi make a singular soft-iron matrix",
+            least > 1e-3 and bool(np.all(np.abs(self.soft_iron) <= 1e3)),
+            "compass_dia/compass_odi must make a positive definite soft-iron matrix, a "
+            "scaling near the identity (ArduPilot's calibration gives one)",
         )
 
     def _require_healthy_start(self) -> None:

@@ -24,6 +24,8 @@ from mavest._jit import inplace_kernel, without_dispatch
 from mavest.estimator import online
 from mavest.estimator.config import (
     MAX_ANGULAR_RATE,
+    MAX_ATTITUDE_VAR,
+    MAX_GYRO_BIAS,
     MAX_SPECIFIC_FORCE,
     EstimatorConfig,
     config_or_default,
@@ -403,6 +405,12 @@ class Estimator:
         """Put back a state taken by :meth:`snapshot`: the updates since are undone,
         as if they had not been made (an update fetched before follows, as it follows
         :meth:`reset`)."""
+        if not (
+            isinstance(snapshot, np.ndarray)
+            and snapshot.dtype == self._state.dtype
+            and snapshot.shape == self._state.shape
+        ):
+            raise TypeError("restore takes a snapshot() of an estimator of this configuration")
         # in place: the online step and the heading turn hold this record
         self._state[...] = snapshot
 
@@ -425,20 +433,39 @@ class Estimator:
         an alignment. ``q`` is the filter's own attitude (:attr:`q`): with an
         ``imu_delay``, the IMU's at ``t`` less the delay.
         """
+        # Each refusal is one the health check would otherwise make at the next sample,
+        # throwing the state given away (UNHEALTHY_RESET), or a time that never passes.
         state = new_state(self._coefficients)
         s = state[0]
-        q = np.asarray(q, dtype=np.float64)
-        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) == 0.0:
+        if not math.isfinite(t):
+            raise ValueError(f"t must be a finite time in seconds, got {t}")
+        q = online.real_array(q, "q")
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or not np.any(q):
             raise ValueError("q must be a finite, non-zero quaternion (w, x, y, z)")
-        s["q"] = q / np.linalg.norm(q)
+        with np.errstate(over="ignore", under="ignore"):
+            norm = float(np.linalg.norm(q))
+        if not (math.isfinite(norm) and norm > 0.0):  # its norm overflowed, or underflowed
+            q = q / np.max(np.abs(q))
+            norm = float(np.linalg.norm(q))
+        s["q"] = q / norm
         if bias is not None:
-            s["b"] = online.vector3(bias, "bias")
+            b = online.vector3(bias, "bias")
+            if not np.all(np.abs(b) <= MAX_GYRO_BIAS):  # (NaN too)
+                raise ValueError(f"bias must be finite and within ±{MAX_GYRO_BIAS:g} rad/s")
+            s["b"] = b
         if cov is not None:
-            P = np.asarray(cov, dtype=np.float64)
+            P = online.real_array(cov, "cov")
             if P.shape != (6, 6) or not np.all(np.isfinite(P)):
                 raise ValueError("cov must be a finite (6, 6) matrix")
             if np.any(np.linalg.eigvalsh(0.5 * (P + P.T)) <= 0.0):
                 raise ValueError("cov must be symmetric positive definite")
+            if np.any(np.diag(P)[:3] > MAX_ATTITUDE_VAR) or np.any(
+                np.diag(P)[3:] > MAX_GYRO_BIAS**2
+            ):
+                raise ValueError(
+                    f"cov's variances must be at most {MAX_ATTITUDE_VAR:g} rad² (attitude) "
+                    f"and {MAX_GYRO_BIAS**2:g} (rad/s)² (bias)"
+                )
             s["P"][:N_ERROR, :N_ERROR] = 0.5 * (P + P.T)
         if self.config.error == "right":  # δθ_body = Rᵀ δθ_world
             A = np.eye(N_ERROR)
@@ -514,8 +541,8 @@ class Estimator:
         declination. (Left to the magnetometer updates, a 12° change takes
         minutes at a converged heading's σ, or trips the innovation gate.)
         """
-        if not math.isfinite(value):
-            raise ValueError("declination must be finite (rad)")
+        if not abs(value) <= math.pi:  # (NaN too)
+            raise ValueError(f"declination must be within ±π rad, got {value} (degrees?)")
         turn = math.remainder(value - self.declination, math.tau)
         self._coefficients["mag_declination"] = value
         if self.initialised and self._state["t_mag_used"][0] > -math.inf and turn != 0.0:

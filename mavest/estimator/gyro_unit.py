@@ -26,6 +26,10 @@ import numpy as np
 #: The window over which the two turns are compared: long enough for a tilt to show
 #: above the accelerometer's noise, short enough that the rates add up as a rotation.
 WINDOW = 0.25  # s
+#: Where too few windows of :data:`WINDOW` tilt enough (a vehicle that tilts slowly:
+#: a simulated flight banking ±30° over seconds had 1–13), windows this long are
+#: compared instead: the rates of a slow tilt still add up as its rotation.
+LONG_WINDOW = 1.0  # s
 #: Each end of a window is the accelerometer averaged over this many samples.
 END_SAMPLES = 5
 #: A window counts when the accelerometer turned by at least this and both ends are
@@ -43,9 +47,14 @@ UNITS = (("°/s", 180.0 / math.pi), ("mrad/s", 1000.0), ("centi-°/s", 18000.0 /
 
 
 def turn_ratios(
-    t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, gravity: float, max_dt: float
+    t: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    gravity: float,
+    max_dt: float,
+    window: float = WINDOW,
 ) -> np.ndarray:
-    """Per window (non-overlapping, :data:`WINDOW` long, its span that of as many
+    """Per window (non-overlapping, ``window`` long, its span that of as many
     regular steps to within 10 %: no gap, no jump of the clock in it), the angle the gyro
     turns gravity by over the accelerometer's, for the windows whose accelerometer turned
     by :data:`MIN_TURN` or more near g; at most :data:`MAX_WINDOWS` of them, from the
@@ -59,7 +68,9 @@ def turn_ratios(
     step = float(np.median(steps))
     if step > max_dt:  # (no two samples joined: nothing turns within a window)
         return np.empty(0)
-    length = max(2 * END_SAMPLES + 1, round(WINDOW / step))
+    if window / step > n:  # not one window (and a subnormal step's window is infinite)
+        return np.empty(0)
+    length = max(2 * END_SAMPLES + 1, round(window / step))
     windows = n // length
     per_chunk = max(1, (1 << 16) // length)
     half = END_SAMPLES // 2
@@ -105,6 +116,8 @@ def gyro_unit_problem(
     ratio), naming the unit it is likely in; None otherwise, or without the motion to
     tell (a recording at rest, or turning about the vertical only)."""
     ratios = turn_ratios(t, gyro, accel, gravity, max_dt)
+    if ratios.shape[0] < MIN_WINDOWS:
+        ratios = turn_ratios(t, gyro, accel, gravity, max_dt, LONG_WINDOW)
     if ratios.shape[0] < MIN_WINDOWS:
         return None
     ratio = float(np.median(ratios))

@@ -186,7 +186,9 @@ def mag_update(s: StateRecord, c: CoefficientsRecord, t: float, mag: np.ndarray,
     true covariance of the estimate the gain makes, leak included.
     """
     if not vector_is_finite(mag):
-        return  # no magnetometer in this sample
+        if not (math.isnan(mag[0]) and math.isnan(mag[1]) and math.isnan(mag[2])):
+            s.flags |= _MAG_INVALID  # a reading, but a corrupt one (inf, or NaN in part)
+        return  # (all NaN: no magnetometer in this sample)
     if s.mag_state != 0 and not update_due(c, t - s.t_mag, dt):
         s.flags |= _MAG_BETWEEN_UPDATES  # (its own schedule: the field may come at its own rate)
         return

@@ -96,7 +96,7 @@ class StepFlags:
     TILT_REOPENED = 256  # disturbed too long: tilt given its initial uncertainty again
     LOWPASS_RESTARTED = 512  # a large correction: the accelerometer low-pass starts again
     ACCEL_DEFERRED = 1024  # the low-pass has not averaged enough yet to be used
-    MAG_INVALID = 2048  # magnetometer zero, or (nearly) vertical: no heading in it
+    MAG_INVALID = 2048  # magnetometer zero, (nearly) vertical or not finite: no heading
     MAG_DISTURBED = 4096  # field norm or dip off the reference: not used
     MAG_REJECTED = 8192  # heading innovation beyond the χ² gate: not used
     HEADING_ALIGNED = 16384  # heading set from the magnetometer (first sample, or again)

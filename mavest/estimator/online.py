@@ -109,10 +109,20 @@ def warn_accel_unit(state: np.ndarray, stacklevel: int) -> None:
 
 def real_array(value: ArrayLike, name: str) -> np.ndarray:
     """``value`` as a C-contiguous float64 array; a TypeError for complex numbers or text
-    (which numpy would convert, dropping the imaginary part or parsing the text)."""
+    (which numpy would convert, dropping the imaginary part or parsing the text) and for
+    dates or durations (their raw counts are no seconds). A masked array's masked
+    values are NaN: not there, as the filter takes NaN (``np.asarray`` would pass the
+    values under the mask on as if they were measured)."""
+    if isinstance(value, np.ma.MaskedArray):
+        value = value.astype(np.float64).filled(np.nan)
     array = np.asarray(value)
     if array.dtype.kind in "cUS":
         raise TypeError(f"{name} must be real numbers, got {array.dtype} values")
+    if array.dtype.kind in "mM":
+        raise TypeError(
+            f"{name} must be seconds as float64, got {array.dtype} values "
+            "(for times: (t - t[0]) / np.timedelta64(1, 's'))"
+        )
     return np.ascontiguousarray(array, dtype=np.float64)
 
 

@@ -274,7 +274,11 @@ def _step_sample(
         # sample's accelerometer, keep heading and bias (which drift slowly).
         if accel_usable_for_alignment(c, accel):
             for i in range(3):
-                s.P[3 + i, 3 + i] += c.bias_var_density * dt
+                # known no worse than before any data: a clock that jumped by years and
+                # stayed (boot time turned Unix time) would grow it past the health
+                # check's bound, and the bias learned would be thrown away
+                grown = s.P[3 + i, 3 + i] + c.bias_var_density * dt
+                s.P[3 + i, 3 + i] = max(s.P[3 + i, 3 + i], min(grown, c.initial_bias_var))
             align(s, c, accel, True, True)
             s.t = t
             s.t_accel = t
