@@ -978,8 +978,8 @@ def format_summary(report: RunReport) -> str:
     pipeline = report.pipeline
     lines = []
     samples = _estimated(pipeline)
-    # (the compiling counted is that within the run's time, but a run's clock and the
-    # compile watch's start apart: never more than the whole)
+    # (the command counts the compiling from just before the run, whose own clock
+    # starts a little later: never more than the whole)
     compiled = min(report.compile_seconds, report.elapsed)
     working = report.elapsed - compiled
     status = " (interrupted)" if report.interrupted else ""
