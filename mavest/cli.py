@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import dataclasses
 import io
+import itertools
 import logging
 import math
 import os
@@ -596,7 +597,8 @@ def _read_imu_csv(path: Path) -> np.ndarray:
         table = np.loadtxt(lines, delimiter=",", ndmin=2)
     except ValueError as error:
         # not every row is numbers of one count: keep the rows that are a sample
-        bad = [(number, line) for number, line in rows if not _is_sample_row(line)]
+        sample = [_is_sample_row(line) for line in lines]
+        bad = [row for row, good in zip(rows, sample, strict=True) if not good]
         if not bad:  # numbers Python reads and NumPy does not ("1_000")
             raise UsageError(f"{path}: not a CSV of numbers ({error})") from None
         number, line = bad[0]
@@ -615,7 +617,7 @@ def _read_imu_csv(path: Path) -> np.ndarray:
             number,
             line[:60],
         )
-        table = np.loadtxt([line for line in lines if _is_sample_row(line)], delimiter=",", ndmin=2)
+        table = np.loadtxt(list(itertools.compress(lines, sample)), delimiter=",", ndmin=2)
     if table.shape[1] != len(CSV_COLUMNS):
         raise UsageError(
             f"{path}: expected 7 columns {', '.join(CSV_COLUMNS)}; found {table.shape[1]}"

@@ -105,10 +105,10 @@ def score(
     """Per delay (s), per filter, per trial: the tilt error's RMS (°) per band and whole."""
     table: dict[float, dict[str, list[list[float]]]] = {d: {} for d in delays}
     for trial in trials:
+        truth = np.all(np.isfinite(trial.truth_q), axis=1)
         for name, carried in carried_runs(trial).items():
             for delay in delays:
                 tilt = tilt_heading_errors(carried(delay), trial.truth_q).tilt
-                truth = np.all(np.isfinite(trial.truth_q), axis=1)
                 rms = band_rms(np.degrees(tilt), trial.movement, trial.rate, truth)
                 table[delay].setdefault(name, []).append(rms)
         report.progress("error_bands", trial.name)

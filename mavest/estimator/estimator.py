@@ -33,6 +33,7 @@ from mavest.estimator.config import (
 from mavest.estimator.frames import add_reported_alignment, report_attitude_into
 from mavest.estimator.gyro_unit import gyro_unit_problem
 from mavest.estimator.heading import turn_heading
+from mavest.estimator.health import state_is_plausible
 from mavest.estimator.layout import N_ERROR, StepFlags, make_coefficients, new_state
 from mavest.estimator.linalg import copy_into, copy_matrix_into
 from mavest.estimator.recursion import step
@@ -449,28 +450,24 @@ class Estimator:
             norm = float(np.linalg.norm(q))
         s["q"] = q / norm
         if bias is not None:
-            b = online.vector3(bias, "bias")
-            if not np.all(np.abs(b) <= MAX_GYRO_BIAS):  # (NaN too)
-                raise ValueError(f"bias must be finite and within ±{MAX_GYRO_BIAS:g} rad/s")
-            s["b"] = b
+            s["b"] = online.vector3(bias, "bias")
         if cov is not None:
             P = online.real_array(cov, "cov")
             if P.shape != (6, 6) or not np.all(np.isfinite(P)):
                 raise ValueError("cov must be a finite (6, 6) matrix")
             if np.any(np.linalg.eigvalsh(0.5 * (P + P.T)) <= 0.0):
                 raise ValueError("cov must be symmetric positive definite")
-            if np.any(np.diag(P)[:3] > MAX_ATTITUDE_VAR) or np.any(
-                np.diag(P)[3:] > MAX_GYRO_BIAS**2
-            ):
-                raise ValueError(
-                    f"cov's variances must be at most {MAX_ATTITUDE_VAR:g} rad² (attitude) "
-                    f"and {MAX_GYRO_BIAS**2:g} (rad/s)² (bias)"
-                )
             s["P"][:N_ERROR, :N_ERROR] = 0.5 * (P + P.T)
         if self.config.error == "right":  # δθ_body = Rᵀ δθ_world
             A = np.eye(N_ERROR)
             A[:3, :3] = so3.matrix_from_quat(s["q"]).T
             s["P"][:N_ERROR, :N_ERROR] = A @ s["P"][:N_ERROR, :N_ERROR] @ A.T
+        if not state_is_plausible(s, self._coefficients[0]):  # (the health check's rule)
+            raise ValueError(
+                f"bias must be finite and within ±{MAX_GYRO_BIAS:g} rad/s, and cov's "
+                f"variances at most {MAX_ATTITUDE_VAR:g} rad² (attitude) and "
+                f"{MAX_GYRO_BIAS**2:g} (rad/s)² (bias)"
+            )
         s["t"] = float(t)
         s["t_accel"] = float(t)
         s["initialised"] = 1

@@ -56,7 +56,7 @@ def _cap_heading_variance(s: StateRecord, c: CoefficientsRecord) -> None:
 
 
 @inplace_kernel
-def _state_is_plausible(s: StateRecord, c: CoefficientsRecord) -> bool:
+def state_is_plausible(s: StateRecord, c: CoefficientsRecord) -> bool:
     """Nominal finite and a unit quaternion, bias plausible, every variance within its
     bound (NaN fails every test): what a sample between updates is checked for. (There,
     with the transition pending, the considered rows are not written: the estimate's
@@ -79,9 +79,9 @@ def _state_is_plausible(s: StateRecord, c: CoefficientsRecord) -> bool:
 
 @inplace_kernel
 def state_is_healthy(s: StateRecord, c: CoefficientsRecord) -> bool:
-    """:func:`_state_is_plausible`, and P positive definite (LDLᵀ pivots; P is
+    """:func:`state_is_plausible`, and P positive definite (LDLᵀ pivots; P is
     symmetric by construction, symmetrise runs at every update)."""
-    if not _state_is_plausible(s, c):
+    if not state_is_plausible(s, c):
         return False
     n = c.n_state
     # The estimate's own 6×6 at every check; the whole, with the considered states, every
@@ -135,7 +135,7 @@ def check_health(s: StateRecord, c: CoefficientsRecord, accel: np.ndarray) -> No
         return
     _cap_heading_variance(s, c)
     if s.flags & _BETWEEN_UPDATES:
-        healthy = _state_is_plausible(s, c)
+        healthy = state_is_plausible(s, c)
     else:
         healthy = state_is_healthy(s, c)
     if not healthy:
